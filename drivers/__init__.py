@@ -1,0 +1,1 @@
+"""CAN frames -> validated, typed sensor samples. Knows python-can and bytes; never zenoh or Pinocchio."""

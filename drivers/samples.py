@@ -1,0 +1,94 @@
+"""Typed sensor samples: what the drivers make of CAN frames, in SI units.
+
+These frozen dataclasses are the contract between the bytes (``drivers``), the sensor firmware
+of the simulator (which encodes the same readings) and the gateway (which estimates from them).
+Time is integer nanoseconds (``t_ns``): the CAN timestamp of the frame that completed the sample.
+Frames are named in every docstring; conventions follow ../shared/METHOD.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class WrenchSample:
+    """One six-axis F/T reading of arm ``device``.
+
+    The wrench the SPACECRAFT exerts ON the arm (METHOD.md): force in N and moment in N m about
+    the sensor origin S_j, both in the sensor frame. ``saturated`` is set when any channel was at
+    the end of its range (the value is then clamped, never wrapped).
+    """
+
+    device: str
+    t_ns: int
+    counter: int
+    force_n: Vec3
+    torque_nm: Vec3
+    saturated: bool = False
+    status: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """One spacecraft IMU sample, in the IMU frame.
+
+    ``accel_m_s2``: specific force (non-gravitational acceleration of the IMU point; in orbit
+    this is what thrusters and arm reactions cause). ``rate_rad_s``: angular rate.
+    ``quat_wxyz``: attitude, IMU frame -> inertial frame, scalar first (Xsens order).
+    """
+
+    t_ns: int
+    counter: int
+    quat_wxyz: tuple[float, float, float, float]
+    rate_rad_s: Vec3
+    accel_m_s2: Vec3
+    saturated: bool = False
+    status: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class JointSample:
+    """One joint drive report: encoder angle and the drive's velocity estimate.
+
+    ``device`` is ``<arm>/<joint>`` as in the robot description (e.g. ``arm0/j1``).
+    """
+
+    device: str
+    t_ns: int
+    counter: int
+    angle_rad: float
+    rate_rad_s: float
+    saturated: bool = False
+    status: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class TorqueCommand:
+    """The motor torque the controller commanded to joint ``device`` (``<arm>/<joint>``), N m."""
+
+    device: str
+    t_ns: int
+    counter: int
+    torque_nm: float
+    saturated: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class ThrusterCommand:
+    """The thruster wrench the controller commanded: body frame, force through and moment about C.
+
+    ``valves`` is the bit mask of thruster valves open in the same control cycle (bit i =
+    thruster i of the configured layout).
+    """
+
+    t_ns: int
+    counter: int
+    force_n: Vec3
+    moment_nm: Vec3
+    valves: int = 0
+    saturated: bool = False
+
+
+Sample = WrenchSample | ImuSample | JointSample | TorqueCommand | ThrusterCommand

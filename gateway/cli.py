@@ -1,0 +1,64 @@
+"""The ``bsc`` command line: one entry point, one subcommand per job.
+
+Errors are one clear line on stderr and a non-zero exit; ``--debug`` shows the traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+# name -> (module in gateway.commands, one-line help). Imported only when chosen.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "sim": ("sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
+}
+
+
+class UserError(Exception):
+    """An error the user can fix (bad file, bad option): printed as one line, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from gateway import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="bsc",
+        description="Base Sensor Control gateway: actual joint torques and thruster wrench of a "
+                    "space robot from its base F/T sensors, IMU and encoders.")
+    parser.add_argument("--version", action="version", version=f"bsc {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help="show tracebacks on errors")
+        p.set_defaults(_module=module)
+        _load(module).add_arguments(p)
+    return parser
+
+
+def _load(module: str):
+    return importlib.import_module(f"gateway.commands.{module}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    # Skinny matrix products run far slower with BLAS threads on 2 cores; set before numpy loads.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(_load(args._module).run(args) or 0)
+    except KeyboardInterrupt:
+        print("bsc: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
+        if args.debug:
+            raise
+        kind = "" if isinstance(exc, (UserError, OSError, ValueError)) else f"{type(exc).__name__}: "
+        print(f"bsc {args.command}: error: {kind}{exc}", file=sys.stderr)
+        return 2 if isinstance(exc, (UserError, ValueError, OSError)) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

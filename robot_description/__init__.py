@@ -1,0 +1,225 @@
+"""The robot description: a URDF that follows the bsc convention, read into a Pinocchio model.
+
+Both the simulator (its truth) and the gateway (its belief) read the robot through
+:func:`load`. The convention (docs/robot-convention.md) in short:
+
+- the root link is the spacecraft; its frame is the body frame, with its origin at the
+  spacecraft's centre of mass C (the reference point of the thruster wrench);
+- a massless link ``imu`` fixed to the spacecraft is the IMU frame;
+- each manipulator ``<arm>`` hangs from a massless link ``<arm>_ft_sensor`` fixed to the
+  spacecraft: the six-axis F/T sensor frame (origin S_j, orientation R_j);
+- below the sensor, a serial chain of revolute joints, ending in a massless link ``<arm>_ee``.
+
+Arms are found from the links, not from a count: any number of arms with any number of joints.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+URDF_DIR = Path(__file__).parent / "urdf"
+BUILTIN = {p.stem: p for p in sorted(URDF_DIR.glob("*.urdf"))}
+DEFAULT = "paper_robot"
+
+SENSOR_SUFFIX = "_ft_sensor"
+EE_SUFFIX = "_ee"
+IMU_FRAME = "imu"
+
+
+class DescriptionError(ValueError):
+    """The URDF cannot be read, or does not follow the bsc robot convention."""
+
+
+@dataclass(frozen=True, slots=True)
+class Arm:
+    """One manipulator, as indices into the Pinocchio model."""
+
+    name: str
+    sensor_frame: int            # frame id of the F/T sensor (fixed to the spacecraft)
+    ee_frame: int                # frame id of the end effector
+    joints: tuple[int, ...]      # Pinocchio joint ids, proximal first
+    joint_names: tuple[str, ...]
+    iq: tuple[int, ...]          # indices into q
+    iv: tuple[int, ...]          # indices into v (and tau)
+    r_sc: np.ndarray             # S_j - C in the spacecraft frame, m
+    R_sc: np.ndarray             # sensor frame -> spacecraft frame rotation
+
+    @property
+    def n(self) -> int:
+        return len(self.joints)
+
+
+@dataclass(frozen=True, slots=True)
+class Robot:
+    """A robot model built once from its URDF; make scratch ``Data`` with :meth:`data`."""
+
+    name: str
+    urdf: str                    # the URDF text (logs carry it so they are self-contained)
+    model: pin.Model             # free-flyer root; gravity zero (orbit)
+    arms: tuple[Arm, ...]
+    imu_frame: int
+    r_imu: np.ndarray            # IMU origin - C, spacecraft frame, m
+    R_imu: np.ndarray            # IMU frame -> spacecraft frame
+
+    def data(self) -> pin.Data:
+        return self.model.createData()
+
+    @property
+    def nq(self) -> int:
+        return self.model.nq
+
+    @property
+    def nv(self) -> int:
+        return self.model.nv
+
+    @property
+    def n_joints(self) -> int:
+        return self.model.nv - 6
+
+    @property
+    def spacecraft_mass(self) -> float:
+        return float(self.model.inertias[1].mass)
+
+    @property
+    def spacecraft_inertia(self) -> np.ndarray:
+        """Inertia of the spacecraft alone about C, body frame, kg m^2."""
+        return np.array(self.model.inertias[1].inertia)
+
+    @property
+    def joint_names(self) -> list[str]:
+        """``<arm>/<joint>`` for every actuated joint, in v order (after the 6 base dofs)."""
+        return [f"{a.name}/{j}" for a in self.arms for j in a.joint_names]
+
+    @property
+    def effort_limit(self) -> np.ndarray:
+        return np.array(self.model.effortLimit[6:])
+
+    def neutral(self) -> np.ndarray:
+        return pin.neutral(self.model)
+
+
+def resolve(robot: str | Path | None) -> Path:
+    """A built-in robot name (``paper_robot``, ``three_arm``) or a path to a URDF file."""
+    if robot is None:
+        robot = DEFAULT
+    if str(robot) in BUILTIN:
+        return BUILTIN[str(robot)]
+    path = Path(robot)
+    if not path.is_file():
+        raise DescriptionError(f"no such robot: {robot!s} (built-in: {', '.join(BUILTIN)}; or a .urdf path)")
+    return path
+
+
+def load(robot: str | Path | None = None) -> Robot:
+    """Read a convention-following URDF (built-in name or path) into a :class:`Robot`."""
+    path = resolve(robot)
+    text = path.read_text()
+    return from_urdf_text(text, name=path.stem)
+
+
+def from_urdf_text(text: str, name: str = "robot") -> Robot:
+    try:
+        model = pin.buildModelFromXML(text, pin.JointModelFreeFlyer())
+    except (RuntimeError, ValueError) as exc:
+        raise DescriptionError(f"cannot parse URDF {name}: {exc}") from exc
+    model.gravity.linear[:] = 0.0     # orbit: gravity gradient neglected, accelerometers read 0 g
+    return _interpret(model, text, name)
+
+
+def _frame(model: pin.Model, name: str) -> int | None:
+    # A massless link becomes a BODY frame; the fixed joint to it a FIXED_JOINT frame at the same place.
+    for i, f in enumerate(model.frames):
+        if f.name == name and f.type == pin.FrameType.BODY:
+            return i
+    return None
+
+
+def _placement_in_base(model: pin.Model, frame_id: int) -> pin.SE3:
+    f = model.frames[frame_id]
+    if f.parentJoint != 1:
+        raise DescriptionError(f"frame {f.name!r} must be fixed to the spacecraft (root link)")
+    return f.placement
+
+
+def _interpret(model: pin.Model, text: str, name: str) -> Robot:
+    if model.njoints < 2 or model.joints[1].shortname() != "JointModelFreeFlyer":
+        raise DescriptionError(f"{name}: the root must be the spacecraft on a free-flyer joint")
+    base = model.inertias[1]
+    if base.mass <= 0:
+        raise DescriptionError(f"{name}: the spacecraft (root link) needs a positive mass")
+    if np.linalg.norm(base.lever) > 1e-9:
+        raise DescriptionError(
+            f"{name}: the spacecraft link origin must be its centre of mass (inertial origin "
+            f"{base.lever.round(4).tolist()}); the thruster wrench is referred to C")
+    imu = _frame(model, IMU_FRAME)
+    if imu is None:
+        raise DescriptionError(f"{name}: no '{IMU_FRAME}' link fixed to the spacecraft")
+    imu_M = _placement_in_base(model, imu)
+
+    arms = []
+    sensors = sorted((f.name[: -len(SENSOR_SUFFIX)], i) for i, f in enumerate(model.frames)
+                     if f.name.endswith(SENSOR_SUFFIX) and f.type == pin.FrameType.BODY)
+    if not sensors:
+        raise DescriptionError(f"{name}: no manipulator (no '<arm>{SENSOR_SUFFIX}' link)")
+    for arm_name, sensor in sensors:
+        M = _placement_in_base(model, sensor)
+        first = [j for j in range(2, model.njoints)
+                 if model.parents[j] == 1 and model.frames[_parent_body_frame(model, j)].name
+                 == arm_name + SENSOR_SUFFIX]
+        if len(first) != 1:
+            raise DescriptionError(f"{name}: arm {arm_name!r} must have exactly one joint under its sensor")
+        chain = [first[0]]
+        while True:
+            children = [j for j in range(2, model.njoints) if model.parents[j] == chain[-1]]
+            if not children:
+                break
+            if len(children) > 1:
+                raise DescriptionError(f"{name}: arm {arm_name!r} branches; each arm must be a serial chain")
+            chain.append(children[0])
+        for j in chain:
+            if not model.joints[j].shortname().startswith("JointModelR") or model.joints[j].nq != 1:
+                raise DescriptionError(f"{name}: joint {model.names[j]!r} is not a revolute joint")
+        ee = _frame(model, arm_name + EE_SUFFIX)
+        if ee is None or model.frames[ee].parentJoint != chain[-1]:
+            raise DescriptionError(f"{name}: arm {arm_name!r} needs a '{arm_name}{EE_SUFFIX}' link on its last link")
+        arms.append(Arm(
+            name=arm_name, sensor_frame=sensor, ee_frame=ee, joints=tuple(chain),
+            joint_names=tuple(model.names[j].removeprefix(arm_name + "_") for j in chain),
+            iq=tuple(model.joints[j].idx_q for j in chain), iv=tuple(model.joints[j].idx_v for j in chain),
+            r_sc=np.array(M.translation), R_sc=np.array(M.rotation),
+        ))
+    n_arm_joints = sum(a.n for a in arms)
+    if n_arm_joints != model.nv - 6:
+        raise DescriptionError(f"{name}: {model.nv - 6 - n_arm_joints} joint(s) belong to no arm")
+    # v order = arms in name order, proximal first: the gateway's vectors rely on it
+    order = [i for a in arms for i in a.iv]
+    if order != list(range(6, model.nv)):
+        raise DescriptionError(f"{name}: joints must be declared arm by arm, proximal first")
+    return Robot(name=name, urdf=text, model=model, arms=tuple(arms), imu_frame=imu,
+                 r_imu=np.array(imu_M.translation), R_imu=np.array(imu_M.rotation))
+
+
+def _parent_body_frame(model: pin.Model, joint: int) -> int:
+    """The BODY frame of the link a joint hangs from (its URDF parent link)."""
+    f = model.frames[model.getFrameId(model.names[joint], pin.FrameType.JOINT)]
+    return f.parentFrame if model.frames[f.parentFrame].type == pin.FrameType.BODY else \
+        model.frames[f.parentFrame].parentFrame
+
+
+def perturbed(robot: Robot, rel: float, seed: int = 0) -> Robot:
+    """The same robot with every mass and inertia scaled by a random factor within +-``rel``.
+
+    For robustness studies: the gateway believes this model while the simulator runs the truth.
+    CoM positions are kept; inertia tensors are scaled as a whole so they stay physical.
+    """
+    rng = np.random.default_rng(seed)
+    model = robot.model.copy()
+    for j in range(1, model.njoints):
+        Y = model.inertias[j]
+        s = 1.0 + rel * rng.choice([-1.0, 1.0])
+        model.inertias[j] = pin.Inertia(Y.mass * s, Y.lever, Y.inertia * s)
+    return Robot(name=robot.name + f"~{rel:g}", urdf=robot.urdf, model=model, arms=robot.arms,
+                 imu_frame=robot.imu_frame, r_imu=robot.r_imu, R_imu=robot.R_imu)
