@@ -11,6 +11,7 @@ import sys
 
 # name -> (module in gateway.commands, one-line help). Imported only when chosen.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("demo", "the main job: the paper's capture scenario end to end, with report and figures"),
     "sim": ("sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
 }
 

@@ -74,7 +74,7 @@ def _spatial_arm(name: str, mount_deg: float) -> ArmSpec:
 # get away with "two planar arms of two joints".
 THREE_ARM = RobotSpec(
     name="three_arm", mass_kg=1500.0, inertia_kgm2=(1800.0, 2100.0, 2600.0), radius_m=1.6,
-    arms=(_spatial_arm("left", 60.0), _spatial_arm("right", -60.0), _spatial_arm("aft", 180.0)),
+    arms=(_spatial_arm("left", 50.0), _spatial_arm("right", -50.0), _spatial_arm("center", 0.0)),
     imu_xyz_m=(-0.2, 0.5, -0.3), imu_rpy=(0.0, 0.0, math.pi / 2),
 )
 

@@ -1,0 +1,64 @@
+"""Simulator speed: simulated seconds per wall second at 1 kHz for the paper's robot.
+
+    python -m benchmarks.bench_sim [--seconds 4]
+
+Prints the real-time factor of the whole loop (physics, controller, thrusters, sensors, truth)
+and, as anchors measured in the same run, the cost of the physics step alone and of one
+Pinocchio ABA call, so the figure can be read as a ratio on a shared, noisy machine.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pinocchio as pin  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    from simulator import scenario
+    from simulator.dynamics import Dynamics, Friction
+    from simulator.engine import Simulation
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run")
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+
+    sc = scenario.load("capture", {"duration_s": args.seconds})
+    best = float("inf")
+    for _ in range(args.repeat):
+        sim = Simulation(sc)
+        t0 = time.perf_counter()
+        sim.run()
+        best = min(best, time.perf_counter() - t0)
+    steps = sim.n_steps
+
+    dyn = Dynamics(sim.robot.model, Friction.none(sim.robot.n_joints), 1e-3)
+    dyn.q = sim.robot.neutral()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        dyn.step(np.zeros(6), np.ones(sim.robot.n_joints))
+    t_phys = time.perf_counter() - t0
+
+    m, d = sim.robot.model, sim.robot.model.createData()
+    q, v, tau = sim.robot.neutral(), np.zeros(m.nv), np.ones(m.nv)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        pin.aba(m, d, q, v, tau)
+    t_aba = time.perf_counter() - t0
+
+    per_step = best / steps * 1e6
+    print(f"{'figure':44s} {'value':>12s}")
+    print(f"{'simulated s per wall s (whole loop, 1 kHz)':44s} {args.seconds / best:12.2f}   (target >= 20)")
+    print(f"{'whole loop, us per step':44s} {per_step:12.1f}")
+    print(f"{'anchor: RK4 physics step alone, us':44s} {t_phys / steps * 1e6:12.1f}   ({per_step / (t_phys / steps * 1e6):.1f}x inside the loop)")
+    print(f"{'anchor: one pin.aba call, us':44s} {t_aba / steps * 1e6:12.2f}   (loop = {per_step / (t_aba / steps * 1e6):.0f} ABA calls)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

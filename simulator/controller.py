@@ -1,0 +1,135 @@
+"""The robot's flight software, inside the simulator: the paper's capture task.
+
+- Target: a satellite in a flat spin about the inertial z axis, one grasp point per arm on its
+  rim.
+- Arms: Jacobian-transpose end-effector tracking. Each end effector blends (quintic) from its
+  start onto its moving grasp point over ``approach_s`` and then follows it:
+  ``tau = J^T (Kp (x_d - x) + Kd (xdot_d - xdot)) - D qdot``, saturated at the torque limits.
+  It reads the joint encoders (angles and drive rates) and the navigation solution of the
+  base; J is the end effector's position Jacobian with respect to the arm's own joints.
+- Spacecraft: PD on position (inertial) and attitude (SO(3) log), demanded body wrench about
+  C, allocated to the thrusters at ``base_rate_hz``.
+
+"Commanded" efforts are what this module asks for; friction and thruster errors make the
+actual efforts differ.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+
+from robot_description import Robot
+
+
+class Target:
+    """Flat spin about the inertial z axis through ``center``; grasp points on the rim."""
+
+    def __init__(self, cfg, n_arms: int):
+        self.center = np.array(cfg.center_m, dtype=float)
+        self.radius = float(cfg.radius_m)
+        self.omega = float(cfg.spin_rpm) * 2.0 * math.pi / 60.0
+        grasp = list(cfg.grasp_deg)
+        if len(grasp) < n_arms:
+            # arms beyond the listed ones get points spread evenly after the last one
+            step = 360.0 / n_arms
+            grasp += [grasp[-1] + step * (k + 1) for k in range(n_arms - len(grasp))]
+        self.phase = np.radians(grasp[:n_arms])
+
+    def grasp_points(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities (n_arms, 3) of the grasp points, inertial frame."""
+        ang = self.phase + self.omega * t
+        c, s = self.radius * np.cos(ang), self.radius * np.sin(ang)
+        p = np.empty((len(ang), 3))
+        p[:, 0], p[:, 1], p[:, 2] = c, s, 0.0
+        v = np.empty_like(p)
+        v[:, 0], v[:, 1], v[:, 2] = -self.omega * s, self.omega * c, 0.0
+        return p + self.center, v
+
+
+def pregrasp_ik(robot: Robot, q: np.ndarray, targets: np.ndarray, iters: int = 200) -> np.ndarray:
+    """Joint angles that put each end effector at ``targets`` (p, 3), seeded by ``q``.
+
+    Damped least squares on each arm's own joints (the base stays put); raises if a target is
+    out of reach, so a scenario never starts from a silently wrong pose.
+    """
+    model, data = robot.model, robot.model.createData()
+    q = q.copy()
+    for _ in range(iters):
+        pin.computeJointJacobians(model, data, q)
+        pin.updateFramePlacements(model, data)
+        worst = 0.0
+        for k, arm in enumerate(robot.arms):
+            e = targets[k] - data.oMf[arm.ee_frame].translation
+            worst = max(worst, float(np.linalg.norm(e)))
+            J = pin.getFrameJacobian(model, data, arm.ee_frame, pin.LOCAL_WORLD_ALIGNED)[:3, list(arm.iv)]
+            dq = J.T @ np.linalg.solve(J @ J.T + 1e-4 * np.eye(3), e)
+            q[list(arm.iq)] += np.clip(dq, -0.2, 0.2)
+        if worst < 1e-6:
+            return q
+    raise ValueError(f"pre-grasp pose out of reach (residual {worst:.3f} m): check target.center_m, "
+                     f"target.grasp_deg and controller.standoff_m")
+
+
+def quintic(t: float, T: float) -> tuple[float, float]:
+    """Smooth 0 -> 1 blend and its rate over [0, T]."""
+    if t >= T:
+        return 1.0, 0.0
+    x = t / T
+    return x**3 * (10 - 15 * x + 6 * x * x), (30 * x * x - 60 * x**3 + 30 * x**4) / T
+
+
+class Controller:
+    def __init__(self, robot: Robot, cfg, target: Target):
+        self.robot, self.cfg, self.target = robot, cfg, target
+        self.model, self.data = robot.model, robot.model.createData()
+        self.kp, self.kd, self.damp = cfg.kp, cfg.kd, cfg.joint_damping
+        self.limit = robot.effort_limit
+        self.x0: np.ndarray | None = None
+        self.base_p0: np.ndarray | None = None
+        self.base_R0: np.ndarray | None = None
+        self.iv = [np.array(a.iv) for a in robot.arms]
+
+    def start(self, q: np.ndarray) -> None:
+        """Latch the initial end-effector positions and the base pose to hold."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        self.x0 = np.array([self.data.oMf[a.ee_frame].translation for a in self.robot.arms])
+        M = pin.XYZQUATToSE3(q[:7])
+        self.base_p0, self.base_R0 = M.translation.copy(), M.rotation.copy()
+
+    def desired(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        g, gd = self.target.grasp_points(t)
+        s, sd = quintic(t, self.cfg.approach_s)
+        return (1 - s) * self.x0 + s * g, sd * (g - self.x0) + s * gd
+
+    def joint_torques(self, t: float, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Motor torque commands (saturated), end-effector positions and their desired values."""
+        model, data = self.model, self.data
+        xd, xdd = self.desired(t)
+        pin.computeJointJacobians(model, data, q)      # also runs forward kinematics
+        pin.updateFramePlacements(model, data)
+        tau = np.empty(model.nv - 6)
+        x = np.empty_like(xd)
+        for k, arm in enumerate(self.robot.arms):
+            J = pin.getFrameJacobian(model, data, arm.ee_frame, pin.LOCAL_WORLD_ALIGNED)[:3]
+            iv = self.iv[k]
+            x[k] = data.oMf[arm.ee_frame].translation
+            xdot = J @ v                                  # full velocity, base motion included
+            Ja = J[:, iv]
+            force = self.kp * (xd[k] - x[k]) + self.kd * (xdd[k] - xdot)
+            tau[iv - 6] = Ja.T @ force - self.damp * v[iv]
+        np.clip(tau, -self.limit, self.limit, out=tau)
+        return tau, x, xd
+
+    def base_wrench(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Demanded thruster wrench (body frame, about C) holding the initial base pose."""
+        M = pin.XYZQUATToSE3(q[:7])
+        R = M.rotation
+        kp_p, kp_r = self.cfg.base_kp
+        kd_p, kd_r = self.cfg.base_kd
+        v_world = R @ v[:3]
+        f_world = kp_p * (self.base_p0 - M.translation) - kd_p * v_world
+        e_R = pin.log3(self.base_R0.T @ R)
+        m_body = -kp_r * e_R - kd_r * v[3:6]
+        return np.concatenate([R.T @ f_world, m_body])

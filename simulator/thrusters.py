@@ -1,0 +1,190 @@
+"""Reaction-control thrusters: layout, allocation with a keep-out cone, PWPFM valves, errors.
+
+Frames: positions and force directions are in the spacecraft body frame; the wrench of the set
+is referred to C (the body origin), force through C and moment about C.
+
+Pipeline each control cycle: demanded body wrench -> allocation (non-negative thrust per
+thruster, thrusters whose plume would reach the target disabled) -> "commanded" wrench
+``B u``. Each millisecond: PWPFM turns every thruster's demand into valve on/off -> the actual
+force of an open valve differs from nominal by gain (scatter, thermal, tank pressure,
+degradation), bias and misalignment.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+# Layouts by name: rows (x, y, z, fx, fy, fz) with positions in m and unit force directions.
+# "ring18" for the paper's 4.2 m cylinder (rim radius 2.1 m, height 2 m), target on +x:
+# tangential pairs at four azimuths for in-plane force and yaw; two canted thrusters at the
+# front so that the spacecraft can back away from the target without pointing a plume at it;
+# eight axial thrusters for the out-of-plane axes.
+_C = math.cos(math.radians(60.0))
+_S = math.sin(math.radians(60.0))
+LAYOUTS: dict[str, list[tuple[float, ...]]] = {
+    "ring18": [
+        (2.1, 0.0, 0.0, 0.0, 1.0, 0.0), (2.1, 0.0, 0.0, 0.0, -1.0, 0.0),
+        (2.1, 0.0, 0.0, -_C, -_S, 0.0), (2.1, 0.0, 0.0, -_C, _S, 0.0),
+        (0.0, 2.1, 0.0, 1.0, 0.0, 0.0), (0.0, 2.1, 0.0, -1.0, 0.0, 0.0),
+        (-2.1, 0.0, 0.0, 0.0, 1.0, 0.0), (-2.1, 0.0, 0.0, 0.0, -1.0, 0.0),
+        (0.0, -2.1, 0.0, 1.0, 0.0, 0.0), (0.0, -2.1, 0.0, -1.0, 0.0, 0.0),
+        (2.1, 0.0, 1.0, 0.0, 0.0, -1.0), (2.1, 0.0, -1.0, 0.0, 0.0, 1.0),
+        (0.0, 2.1, 1.0, 0.0, 0.0, -1.0), (0.0, 2.1, -1.0, 0.0, 0.0, 1.0),
+        (-2.1, 0.0, 1.0, 0.0, 0.0, -1.0), (-2.1, 0.0, -1.0, 0.0, 0.0, 1.0),
+        (0.0, -2.1, 1.0, 0.0, 0.0, -1.0), (0.0, -2.1, -1.0, 0.0, 0.0, 1.0),
+    ],
+}
+
+
+def wrench_matrix(pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """6 x N map from thrust magnitudes to the body wrench about C."""
+    return np.vstack([dirs.T, np.cross(pos, dirs).T])
+
+
+@dataclass
+class Layout:
+    pos_m: np.ndarray        # (N, 3) body frame
+    dir: np.ndarray          # (N, 3) unit force direction on the spacecraft, body frame
+    max_n: np.ndarray        # (N,) nominal thrust
+
+    @property
+    def n(self) -> int:
+        return len(self.max_n)
+
+    @property
+    def B(self) -> np.ndarray:
+        return wrench_matrix(self.pos_m, self.dir)
+
+    @classmethod
+    def from_config(cls, cfg) -> "Layout":
+        custom = getattr(cfg, "custom", None)
+        if custom:
+            rows = [tuple(t.pos_m) + tuple(t.dir) for t in custom]
+            maxes = [float(getattr(t, "max_thrust_n", cfg.max_thrust_n)) for t in custom]
+        else:
+            if cfg.layout not in LAYOUTS:
+                raise ValueError(f"unknown thruster layout {cfg.layout!r} (known: {', '.join(LAYOUTS)})")
+            rows = LAYOUTS[cfg.layout]
+            maxes = [cfg.max_thrust_n] * len(rows)
+        a = np.array(rows, dtype=float)
+        d = a[:, 3:] / np.linalg.norm(a[:, 3:], axis=1, keepdims=True)
+        return cls(a[:, :3].copy(), d, np.array(maxes))
+
+
+class Allocator:
+    """Demanded body wrench -> thrust per thruster in [0, max], plumes kept off the target.
+
+    Non-negative least squares on ``[B; eps I] u = [w; 0]`` over the allowed thrusters, then
+    scaled down as a whole if any thruster would exceed its maximum (keeps the wrench's
+    direction). A thruster is disallowed when its exhaust (minus its force direction) points
+    within ``keepout_deg`` + the target's angular radius of the line to the target centre.
+    """
+
+    def __init__(self, layout: Layout, keepout_deg: float, eps: float = 1e-3):
+        self.layout = layout
+        self.B = layout.B
+        self.keepout = math.radians(keepout_deg)
+        self.eps = eps
+
+    def allowed(self, R_world_body: np.ndarray, p_world: np.ndarray,
+                target_center: np.ndarray, target_radius: float) -> np.ndarray:
+        pos_w = p_world + self.layout.pos_m @ R_world_body.T
+        exhaust_w = -self.layout.dir @ R_world_body.T
+        to_target = target_center - pos_w
+        dist = np.linalg.norm(to_target, axis=1)
+        cosang = np.einsum("ij,ij->i", exhaust_w, to_target) / dist
+        half = self.keepout + np.arcsin(np.clip(target_radius / dist, 0.0, 1.0))
+        return cosang < np.cos(half)
+
+    def allocate(self, wrench: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        u = np.zeros(self.layout.n)
+        idx = np.flatnonzero(allowed)
+        if idx.size == 0 or not np.any(wrench):
+            return u
+        scale = self.layout.max_n[idx]
+        A = self.B[:, idx] * scale                     # unknowns: fraction of max thrust
+        A = np.vstack([A, self.eps * np.eye(idx.size)])
+        b = np.concatenate([wrench, np.zeros(idx.size)])
+        x, _ = nnls(A, b, maxiter=50 * idx.size)
+        peak = x.max()
+        if peak > 1.0:
+            x /= peak
+        u[idx] = x * scale
+        return u
+
+
+class PWPFM:
+    """Pulse-width pulse-frequency modulators, one per thruster, updated every ``dt``.
+
+    A first-order filter (gain ``km``, time constant ``tau_s``) of the error between the demand
+    (fraction of max thrust) and the valve state drives a Schmitt trigger (on above ``u_on``,
+    off below ``u_off``); a valve once opened stays open at least ``min_on_s`` (the minimum
+    impulse bit). Over time the duty cycle follows the demand.
+    """
+
+    def __init__(self, n: int, dt: float, km: float, tau_s: float, u_on: float, u_off: float,
+                 min_on_s: float):
+        self.dt, self.km, self.u_on, self.u_off = dt, km, u_on, u_off
+        self.alpha = dt / tau_s
+        self.min_on = max(1, round(min_on_s / dt))
+        self.f = np.zeros(n)
+        self.on = np.zeros(n, dtype=bool)
+        self.on_steps = np.zeros(n, dtype=int)
+
+    def step(self, demand_frac: np.ndarray) -> np.ndarray:
+        self.f += self.alpha * (self.km * (demand_frac - self.on) - self.f)
+        turn_on = ~self.on & (self.f > self.u_on)
+        turn_off = self.on & (self.f < self.u_off) & (self.on_steps >= self.min_on)
+        self.on = (self.on | turn_on) & ~turn_off
+        self.on_steps = np.where(self.on, self.on_steps + 1, 0)
+        return self.on
+
+
+class ThrusterErrors:
+    """What an open valve really delivers: per-thruster gain, bias and misalignment.
+
+    gain = (1 + scatter) * pressure factor * (1 + thermal_coeff * (T - T0)) * degradation;
+    the chamber warms while firing and cools towards T0.
+    """
+
+    def __init__(self, layout: Layout, cfg, rng: np.random.Generator, dt: float):
+        n = layout.n
+        self.layout, self.dt = layout, dt
+        self.scatter = 1.0 + cfg.gain_sigma * rng.standard_normal(n)
+        self.bias_n = cfg.bias_sigma_n * rng.standard_normal(n)
+        self.pressure = cfg.pressure_factor
+        self.thermal = cfg.thermal_coeff_per_k
+        self.heating = cfg.heating_k_per_s
+        self.cool = dt / cfg.cooling_tau_s
+        self.dT = np.zeros(n)
+        self.degrade = np.ones(n)          # set by scenario degradations
+        self.stuck = np.zeros(n, dtype=int)  # 0 normal, -1 stuck closed, +1 stuck open
+        # misalignment: rotate each direction by a small random rotation
+        ang = np.radians(cfg.misalign_deg) * rng.standard_normal((n, 3))
+        self.dir_actual = np.array([_rotvec(a) @ d for a, d in zip(ang, layout.dir)])
+        self.B_actual = wrench_matrix(layout.pos_m, self.dir_actual)
+
+    def valves(self, commanded: np.ndarray) -> np.ndarray:
+        v = commanded.copy()
+        v[self.stuck < 0] = False
+        v[self.stuck > 0] = True
+        return v
+
+    def thrust(self, valves: np.ndarray) -> np.ndarray:
+        """Thrust magnitude of each thruster this step (N), and update the thermal state."""
+        gain = self.scatter * self.pressure * (1.0 + self.thermal * self.dT) * self.degrade
+        f = valves * (self.layout.max_n * gain + self.bias_n)
+        self.dT += self.heating * self.dt * valves - self.cool * self.dT
+        return f
+
+
+def _rotvec(a: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(a))
+    if th < 1e-15:
+        return np.eye(3)
+    k = a / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K

@@ -1,0 +1,41 @@
+"""The bsc command line, run as a user runs it."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+
+def bsc(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "gateway.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def test_help_everywhere():
+    top = bsc("--help")
+    assert top.returncode == 0 and "sim" in top.stdout
+    sub = bsc("sim", "--help")
+    assert sub.returncode == 0 and "--scenario" in sub.stdout
+
+
+def test_sim_writes_trace_and_plots(tmp_path):
+    out = tmp_path / "out"
+    r = bsc("sim", "--duration", "0.3", "--out", str(out), "--quiet")
+    assert r.returncode == 0, r.stderr
+    for f in ("truth.npz", "trajectories.png", "ee_error.png", "joint_torques.png", "thruster_wrench.png"):
+        assert (out / f).stat().st_size > 1000, f
+    with np.load(out / "truth.npz", allow_pickle=False) as z:
+        assert z["tau_act"].shape == (300, 4)
+        assert json.loads(str(z["meta"]))["scenario"] == "capture"
+
+
+def test_errors_are_one_line_and_nonzero(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("nonsense = 1\n")
+    r = bsc("sim", "--scenario", str(bad), "--out", str(tmp_path))
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "unknown scenario key 'nonsense'" in r.stderr
+    r = bsc("--debug", "sim", "--scenario", str(bad), "--out", str(tmp_path))
+    assert r.returncode != 0 and "Traceback" in r.stderr
