@@ -1,0 +1,113 @@
+"""Joint torques from the base F/T sensors (METHOD.md section 2), one sample at a time.
+
+The live forms, computed with Pinocchio into an :class:`EstimatorData` (scratch, one per thread).
+:mod:`.batch` computes the same quantities with a vectorised numpy recursion; the tests hold the
+two together and both against Pinocchio's inverse dynamics of the whole robot.
+
+Inputs, for every function here (one sample):
+
+- ``q``, ``dq``, ``ddq``: arm joint angles (rad), rates (rad/s), accelerations (rad/s^2), shape
+  ``(n_joints,)`` in ``Robot.joint_names`` order;
+- ``ft``: ``(p, 6)``, per arm ``[f_j, t_j]``: the wrench the spacecraft exerts on arm j, sensor
+  frame, moment about S_j (N, N m);
+- ``a_s``, ``w_s``, ``dw_s``: classical acceleration of C (m/s^2), angular rate (rad/s) and
+  angular acceleration (rad/s^2) of the spacecraft, body frame (see :func:`.wrench.imu_to_body`).
+
+Output torques are the net torque the actuator delivers to the chain (motor minus friction),
+N m, about the joint axis, same order as ``q``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from .model import EstimatorData, EstimatorModel
+
+
+def joint_torque_matrix(model: EstimatorModel, data: EstimatorData, q: np.ndarray) -> np.ndarray:
+    """A_tau(q): ``(n_joints, 6)``; row i applies to the wrench of the arm owning joint i.
+
+    Row i is ``[z_i^T S(S - o_i), z_i^T]`` with the axis ``z_i`` and origin ``o_i`` of joint i in
+    the sensor frame of its arm (so ``S = 0``): ``[(o_i x z_i)^T, z_i^T]``, the joint's unit
+    twist seen from the sensor. Also left in ``data.A_tau``.
+    """
+    pm, pd = model.robot.model, data.pin_data
+    data.q[7:] = q
+    pin.forwardKinematics(pm, pd, data.q)
+    _fill_A_tau(model, data)
+    return data.A_tau.copy()
+
+
+def _fill_A_tau(model: EstimatorModel, data: EstimatorData) -> None:
+    pd = data.pin_data
+    for arm in model.arms:
+        for col, jid, twist in zip(arm.columns, arm.joints, arm.unit_twists):
+            # joint frame -> sensor frame (base at identity): the unit twist seen from the sensor
+            data.A_tau[col] = (arm.sensor_inv * pd.oMi[jid]).act(twist).vector
+
+
+def _apply(model: EstimatorModel, A_tau: np.ndarray, ft: np.ndarray) -> np.ndarray:
+    return (A_tau * np.asarray(ft, dtype=float)[model.joint_arm]).sum(axis=1)
+
+
+def joint_torques_simplified(model: EstimatorModel, data: EstimatorData, q: np.ndarray,
+                             ft: np.ndarray) -> np.ndarray:
+    """The paper's simplified estimate ``tau_hat = A_tau(q) w``: no model, no joint rates.
+
+    Exact for the first joint of each arm (nothing between it and the sensor), whatever the
+    motion; the links between the sensor and joint i add an error for i > 1 when they accelerate.
+    """
+    return _apply(model, joint_torque_matrix(model, data, q), ft)
+
+
+def _rnea(model: EstimatorModel, data: EstimatorData, q, dq, ddq, a_s, w_s, dw_s) -> np.ndarray:
+    # Forces do not depend on the base's linear velocity (zero gravity, Galilean invariance) nor on
+    # its pose: put the base at the origin, at rest in translation. Then Pinocchio's spatial base
+    # acceleration equals the classical a_s.
+    pm, pd = model.robot.model, data.pin_data
+    data.q[7:] = q
+    data.v[3:6] = w_s
+    data.v[6:] = dq
+    data.a[:3] = a_s
+    data.a[3:6] = dw_s
+    data.a[6:] = ddq
+    tau = pin.rnea(pm, pd, data.q, data.v, data.a)
+    pin.forwardKinematics(pm, pd, data.q)          # oMi for A_tau; does not touch data.f
+    _fill_A_tau(model, data)
+    return tau
+
+
+def _model_sensor_wrenches(model: EstimatorModel, data: EstimatorData) -> np.ndarray:
+    pd = data.pin_data
+    w = np.empty((model.n_arms, 6))
+    for arm in model.arms:
+        j1 = arm.joints[0]
+        w[arm.index] = arm.sensor_inv.act(pd.oMi[j1].act(pd.f[j1])).vector
+    return w
+
+
+def bias_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray,
+                 ddq: np.ndarray, a_s: np.ndarray, w_s: np.ndarray, dw_s: np.ndarray) -> np.ndarray:
+    """h: the part of ``A_tau w`` spent on the links between the sensor and each joint, N m.
+
+    ``h_i = z_i . sum_{k<i} (N_k + (c_k - o_i) x F_k)`` from the model's masses and inertias,
+    the base motion and the joint motion; zero for the first joint of each arm. Computed as
+    ``A_tau w_model - tau_model`` from Pinocchio's inverse dynamics of the whole robot, where
+    ``w_model`` is the sensor wrench the model predicts: the distal links cancel.
+    """
+    tau_m = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)
+    return _apply(model, data.A_tau, _model_sensor_wrenches(model, data)) - tau_m[6:]
+
+
+def joint_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray,
+                  ddq: np.ndarray, ft: np.ndarray, a_s: np.ndarray, w_s: np.ndarray,
+                  dw_s: np.ndarray) -> np.ndarray:
+    """The full estimate ``tau = A_tau(q) w - h(q, dq, ddq, a_s, w_s, dw_s)`` (paper eq. 11), N m.
+
+    Equivalently ``tau_model + A_tau (w - w_model)``: the model's inverse dynamics corrected by
+    what the sensors see that the model did not predict (friction, payload, unmodelled contact
+    beyond the joint). Only the proximal links' model enters the result.
+    """
+    tau_m = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)
+    w_model = _model_sensor_wrenches(model, data)
+    return tau_m[6:] + _apply(model, data.A_tau, np.asarray(ft, dtype=float) - w_model)
