@@ -13,6 +13,8 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: the paper's capture scenario end to end, with report and figures"),
     "sim": ("sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
+    "info": ("info", "summarise an MCAP log: channels, rates, gaps, metadata, complete or truncated"),
+    "recover": ("recover", "salvage a truncated MCAP log (crash, kill, full disk) into a valid file"),
 }
 
 
@@ -20,8 +22,12 @@ class UserError(Exception):
     """An error the user can fix (bad file, bad option): printed as one line, exit status 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; only the chosen subcommand's module is imported (``bsc --help`` imports none)."""
     from gateway import __version__
+
+    argv = sys.argv[1:] if argv is None else argv
+    chosen = next((a for a in argv if a in COMMANDS), None)
 
     parser = argparse.ArgumentParser(
         prog="bsc",
@@ -35,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help="show tracebacks on errors")
         p.set_defaults(_module=module)
-        _load(module).add_arguments(p)
+        if name == chosen:
+            _load(module).add_arguments(p)
     return parser
 
 
@@ -46,7 +53,7 @@ def _load(module: str):
 def main(argv: list[str] | None = None) -> int:
     # Skinny matrix products run far slower with BLAS threads on 2 cores; set before numpy loads.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
         return int(_load(args._module).run(args) or 0)

@@ -1,0 +1,587 @@
+"""Read back what :mod:`gateway.recorder` wrote: inspect, recover and replay MCAP logs.
+
+- :func:`scan` walks a file record by record (the mcap library's record-level reader, never its
+  summary), so it works on a file cut short by a crash or a full disk and stops cleanly at the
+  first incomplete or corrupt record.
+- :func:`inspect` is what ``bsc info`` prints: duration, channels, rates, gaps, metadata,
+  attachments, and whether the file is complete (valid footer and summary) or truncated.
+- :func:`recover` rewrites every complete record of a truncated file into a valid one.
+- :func:`read_messages` / :func:`read_can_frames` iterate a complete file in log-time order,
+  decoded, for replay.
+
+Bad input (empty, foreign, corrupt header) raises :class:`McapFileError`, a ``ValueError`` with
+one readable line that names the file.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import struct
+import zlib
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import (Attachment, Channel, Chunk, DataEnd, Footer, Header, Message,
+                          Metadata, Schema)
+from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+
+try:
+    from zstandard import ZstdError as _ZstdError
+except ImportError:  # pragma: no cover - zstandard ships with mcap's recommended extras
+    _ZstdError = McapError
+
+from gateway.recorder import CAN_SCHEMA_NAME, can_frame_from_record
+
+MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEADER = struct.Struct("<BQ")          # opcode, length
+_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4               # opcode, length, summary start/offset, crc
+_KNOWN_OPCODES = {int(op) for op in Opcode}
+# Anything a damaged record can throw while the library parses it.
+_PARSE_ERRORS = (McapError, struct.error, ValueError, KeyError, IndexError, OverflowError,
+                 MemoryError, _ZstdError)
+
+
+class McapFileError(ValueError):
+    """The file is not a readable MCAP log (empty, foreign, corrupt before any data)."""
+
+
+@dataclasses.dataclass(slots=True)
+class ScanResult:
+    """What a record-level pass over a file found.
+
+    ``data_complete``: the data section ended with a DataEnd record (the writer finished).
+    ``stop_reason``: why the pass stopped early ("" when it did not); ``stop_offset`` is the
+    byte offset of the first record not read. ``chunks_skipped``: complete chunks whose content
+    was corrupt (CRC or decompression error), so their messages are lost.
+    """
+
+    path: Path
+    size: int
+    header: Header | None = None
+    schemas: dict[int, Schema] = dataclasses.field(default_factory=dict)
+    channels: dict[int, Channel] = dataclasses.field(default_factory=dict)
+    metadata: list[Metadata] = dataclasses.field(default_factory=list)
+    attachments: list[Attachment] = dataclasses.field(default_factory=list)
+    message_count: int = 0
+    orphan_messages: int = 0
+    chunks: int = 0
+    chunks_skipped: int = 0
+    data_complete: bool = False
+    stop_reason: str = ""
+    stop_offset: int = 0
+
+
+def scan(path: str | os.PathLike[str],
+         on_message: Callable[[Channel, Message], None] | None = None,
+         on_record: Callable[[Any], None] | None = None, *,
+         header_only: bool = False) -> ScanResult:
+    """Walk the data section of ``path`` in file order, calling ``on_message`` per message.
+
+    ``on_record`` sees every schema, channel, metadata, attachment and message record in file
+    order (what :func:`recover` copies). Raises :class:`McapFileError` when the file is not MCAP
+    at all (empty, wrong magic, no header); stops cleanly at a truncation.
+    """
+    path = Path(path)
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        result = ScanResult(path=path, size=size)
+        if size == 0:
+            raise McapFileError(f"{path}: empty file")
+        magic = f.read(MAGIC_SIZE)
+        if not MAGIC.startswith(magic):
+            raise McapFileError(f"{path}: not an MCAP file (bad magic bytes {magic[:8]!r})")
+        if len(magic) < MAGIC_SIZE:
+            raise McapFileError(f"{path}: truncated inside the MCAP magic ({size} bytes)")
+        offset = MAGIC_SIZE
+        while True:
+            head = f.read(_RECORD_HEADER.size)
+            if len(head) < _RECORD_HEADER.size:
+                _stop(result, offset, "end of file" if not head else "incomplete record header")
+                break
+            opcode, length = _RECORD_HEADER.unpack(head)
+            if opcode not in _KNOWN_OPCODES and opcode < 0x80:
+                _stop(result, offset, f"invalid record opcode 0x{opcode:02x} (corrupt data)")
+                break
+            if length > size - offset - _RECORD_HEADER.size:
+                name = _opcode_name(opcode)
+                _stop(result, offset, f"incomplete {name} record ({length} bytes announced, "
+                                      f"{size - offset - _RECORD_HEADER.size} left)")
+                break
+            body = f.read(length)
+            try:
+                record = next(iter(StreamReader(io.BytesIO(head + body), skip_magic=True,
+                                                emit_chunks=True,
+                                                record_size_limit=length).records), None)
+            except _PARSE_ERRORS as exc:
+                _stop(result, offset, f"corrupt {_opcode_name(opcode)} record ({exc})")
+                break
+            if result.header is None:
+                if not isinstance(record, Header):
+                    raise McapFileError(f"{path}: not an MCAP log (no header record)")
+                result.header = record
+                if header_only:
+                    return result
+            elif isinstance(record, Chunk):
+                result.chunks += 1
+                try:
+                    inner = breakup_chunk(record, validate_crc=True)
+                except _PARSE_ERRORS:
+                    result.chunks_skipped += 1
+                    inner = []
+                for rec in inner:
+                    _take(result, rec, on_message, on_record)
+            elif isinstance(record, DataEnd):
+                result.data_complete = True
+                offset += _RECORD_HEADER.size + length
+                result.stop_offset = offset
+                break
+            elif isinstance(record, Footer):
+                # A footer without DataEnd: still a finished file (DataEnd is optional-ish in
+                # old writers); treat the data as complete.
+                result.data_complete = True
+                result.stop_offset = offset
+                break
+            elif record is not None:
+                _take(result, record, on_message, on_record)
+            offset += _RECORD_HEADER.size + length
+    if result.header is None:
+        if result.stop_reason.startswith("invalid"):
+            raise McapFileError(f"{path}: not an MCAP log (no header record)")
+        raise McapFileError(f"{path}: truncated before the first record ({size} bytes)")
+    return result
+
+
+def _stop(result: ScanResult, offset: int, reason: str) -> None:
+    result.stop_reason = reason
+    result.stop_offset = offset
+
+
+def _take(result: ScanResult, rec: Any, on_message, on_record) -> None:
+    if isinstance(rec, Message):
+        channel = result.channels.get(rec.channel_id)
+        if channel is None:
+            result.orphan_messages += 1
+            return
+        result.message_count += 1
+        if on_message is not None:
+            on_message(channel, rec)
+    elif isinstance(rec, Schema):
+        result.schemas[rec.id] = rec
+    elif isinstance(rec, Channel):
+        result.channels[rec.id] = rec
+    elif isinstance(rec, Metadata):
+        result.metadata.append(rec)
+    elif isinstance(rec, Attachment):
+        result.attachments.append(rec)
+    else:
+        return                               # indexes, statistics: rebuilt by any writer
+    if on_record is not None:
+        on_record(rec)
+
+
+def _opcode_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name.title().replace("_", "")
+    except ValueError:
+        return f"0x{opcode:02x}"
+
+
+def check_footer(path: str | os.PathLike[str]) -> tuple[bool, str]:
+    """``(True, "")`` when the file ends with a valid footer, summary and magic; else why not."""
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size < 2 * MAGIC_SIZE + _FOOTER_SIZE:
+            return False, "too short to hold a footer"
+        f.seek(size - MAGIC_SIZE)
+        if f.read(MAGIC_SIZE) != MAGIC:
+            return False, "no closing magic (the writer did not finish)"
+        footer_at = size - MAGIC_SIZE - _FOOTER_SIZE
+        f.seek(footer_at)
+        raw = f.read(_FOOTER_SIZE)
+        opcode, length, summary_start, offset_start, crc = struct.unpack("<BQQQI", raw)
+        if opcode != Opcode.FOOTER or length != _FOOTER_SIZE - 9:
+            return False, "no footer record before the closing magic"
+        if summary_start == 0:
+            return False, "footer without a summary section"
+        if not MAGIC_SIZE <= summary_start < footer_at:
+            return False, "footer points outside the file"
+        if crc:
+            f.seek(summary_start)
+            covered = f.read(footer_at + _FOOTER_SIZE - 4 - summary_start)
+            if zlib.crc32(covered) != crc:
+                return False, "summary CRC mismatch"
+        return True, ""
+
+
+# ----------------------------------------------------------------------------- info
+
+@dataclasses.dataclass(slots=True)
+class ChannelInfo:
+    """Per-topic figures; times in ns of the log time base, gaps in seconds."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    count: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+    max_gap_s: float = 0.0
+    max_gap_at_ns: int | None = None
+    gaps: list[tuple[int, float]] = dataclasses.field(default_factory=list)
+    gaps_total: int = 0
+    out_of_order: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        return 0.0 if self.first_ns is None else (self.last_ns - self.first_ns) / 1e9
+
+    @property
+    def rate_hz(self) -> float:
+        d = self.duration_s
+        return (self.count - 1) / d if d > 0 else 0.0
+
+
+@dataclasses.dataclass(slots=True)
+class LogInfo:
+    """What ``bsc info`` reports about one file."""
+
+    path: Path
+    size: int
+    complete: bool
+    status: str                    # "complete" or "truncated: <why>"
+    library: str
+    profile: str
+    message_count: int
+    start_ns: int | None
+    end_ns: int | None
+    channels: list[ChannelInfo]
+    metadata: dict[str, dict[str, str]]
+    attachments: list[dict[str, Any]]
+    gap_threshold_s: float
+    chunks: int
+    chunks_skipped: int
+    orphan_messages: int
+    stop_reason: str
+    stop_offset: int
+
+    @property
+    def duration_s(self) -> float:
+        return 0.0 if self.start_ns is None else (self.end_ns - self.start_ns) / 1e9
+
+    def to_json(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["path"] = str(self.path)
+        d["duration_s"] = self.duration_s
+        d["channels"] = [dict({f.name: getattr(c, f.name) for f in dataclasses.fields(c)},
+                              duration_s=c.duration_s, rate_hz=c.rate_hz)
+                         for c in self.channels]
+        return d
+
+
+MAX_GAPS_KEPT = 1000
+
+
+def inspect(path: str | os.PathLike[str], gap_threshold_s: float = 1.0) -> LogInfo:
+    """Scan ``path`` once and summarise it (see :class:`LogInfo`).
+
+    Gaps are measured per channel between consecutive messages in file order; a message older
+    than its channel's newest so far counts in ``out_of_order`` instead. At most
+    ``MAX_GAPS_KEPT`` gaps above the threshold are listed per channel (``gaps_total`` counts all).
+    """
+    per: dict[int, ChannelInfo] = {}
+    threshold_ns = gap_threshold_s * 1e9
+
+    def on_message(channel: Channel, msg: Message) -> None:
+        info = per.get(channel.id)
+        if info is None:
+            schema = result_schemas.get(channel.schema_id)
+            info = per[channel.id] = ChannelInfo(channel.topic, schema.name if schema else "",
+                                                 channel.message_encoding)
+        t = msg.log_time
+        info.count += 1
+        if info.last_ns is None:
+            info.first_ns = info.last_ns = t
+            return
+        if t < info.last_ns:
+            info.out_of_order += 1
+            info.first_ns = min(info.first_ns, t)
+            return
+        gap = t - info.last_ns
+        if gap > info.max_gap_s * 1e9:
+            info.max_gap_s = gap / 1e9
+            info.max_gap_at_ns = info.last_ns
+        if gap > threshold_ns:
+            info.gaps_total += 1
+            if len(info.gaps) < MAX_GAPS_KEPT:
+                info.gaps.append((info.last_ns, gap / 1e9))
+        info.last_ns = t
+
+    result_schemas: dict[int, Schema] = {}
+
+    def on_record(rec: Any) -> None:
+        if isinstance(rec, Schema):
+            result_schemas[rec.id] = rec
+
+    result = scan(path, on_message=on_message, on_record=on_record)
+    complete, why = (check_footer(path) if result.data_complete
+                     else (False, result.stop_reason))
+    if result.chunks_skipped:
+        complete, why = False, f"{result.chunks_skipped} corrupt chunk(s) skipped"
+    for channel in result.channels.values():     # channels with no messages are listed too
+        if channel.id not in per:
+            schema = result.schemas.get(channel.schema_id)
+            per[channel.id] = ChannelInfo(channel.topic, schema.name if schema else "",
+                                          channel.message_encoding)
+    channels = sorted(per.values(), key=lambda c: c.topic)
+    starts = [c.first_ns for c in channels if c.first_ns is not None]
+    ends = [c.last_ns for c in channels if c.last_ns is not None]
+    return LogInfo(
+        path=result.path, size=result.size, complete=complete,
+        status="complete" if complete else f"truncated: {why}",
+        library=result.header.library, profile=result.header.profile,
+        message_count=result.message_count, start_ns=min(starts) if starts else None,
+        end_ns=max(ends) if ends else None, channels=channels,
+        metadata={m.name: dict(m.metadata) for m in result.metadata},
+        attachments=[{"name": a.name, "media_type": a.media_type, "size": len(a.data),
+                      "log_time_ns": a.log_time} for a in result.attachments],
+        gap_threshold_s=gap_threshold_s, chunks=result.chunks,
+        chunks_skipped=result.chunks_skipped, orphan_messages=result.orphan_messages,
+        stop_reason=result.stop_reason, stop_offset=result.stop_offset)
+
+
+# ----------------------------------------------------------------------------- recover
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class RecoverReport:
+    source: Path
+    output: Path
+    was_complete: bool
+    messages: int
+    channels: int
+    metadata: int
+    attachments: int
+    chunks_skipped: int
+    orphan_messages: int
+    stop_reason: str
+    stop_offset: int
+    bytes_dropped: int
+
+
+def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | None = None,
+            overwrite: bool = False) -> RecoverReport:
+    """Rewrite every complete record of ``source`` into a valid MCAP file ``output``.
+
+    Schemas, channels, metadata, attachments and messages are copied in file order (message
+    times, sequence numbers and bytes unchanged; schema and channel ids may be renumbered).
+    A ``bsc.recover`` metadata record notes the source and where it was cut. The output is
+    written to a temporary name and renamed, so a failed recovery leaves no half file.
+    Default output: ``<stem>.recovered.mcap`` beside the source.
+    """
+    from mcap.writer import Writer
+
+    source = Path(source)
+    output = Path(output) if output is not None else source.with_name(
+        source.stem + ".recovered" + (source.suffix or ".mcap"))
+    if output.exists() and output.resolve() == source.resolve():
+        raise ValueError(f"{output}: output would overwrite the file being recovered")
+    if output.exists() and not overwrite:
+        raise FileExistsError(f"{output} exists (use --force to replace it)")
+    header = scan_header(source)
+    tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    counts = {"messages": 0, "metadata": 0, "attachments": 0}
+    try:
+        with open(tmp, "wb") as f:
+            writer = Writer(f, chunk_size=1 << 20)
+            writer.start(profile=header.profile, library=header.library)
+
+            def on_record(rec: Any) -> None:
+                if isinstance(rec, Schema):
+                    schema_ids[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
+                elif isinstance(rec, Channel):
+                    channel_ids[rec.id] = writer.register_channel(
+                        rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0),
+                        dict(rec.metadata))
+                elif isinstance(rec, Message):
+                    writer.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
+                                       rec.publish_time, rec.sequence)
+                    counts["messages"] += 1
+                elif isinstance(rec, Metadata):
+                    writer.add_metadata(rec.name, dict(rec.metadata))
+                    counts["metadata"] += 1
+                elif isinstance(rec, Attachment):
+                    writer.add_attachment(rec.create_time, rec.log_time, rec.name,
+                                          rec.media_type, rec.data)
+                    counts["attachments"] += 1
+
+            result = scan(source, on_record=on_record)
+            was_complete = result.data_complete and check_footer(source)[0]
+            writer.add_metadata("bsc.recover", {
+                "source": source.name,
+                "source_size": str(result.size),
+                "source_complete": str(was_complete).lower(),
+                "stop_reason": result.stop_reason,
+                "stop_offset": str(result.stop_offset),
+                "chunks_skipped": str(result.chunks_skipped),
+                "messages": str(counts["messages"]),
+            })
+            writer.finish()
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, output)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return RecoverReport(
+        source=source, output=output, was_complete=was_complete, messages=counts["messages"],
+        channels=len(channel_ids), metadata=counts["metadata"],
+        attachments=counts["attachments"], chunks_skipped=result.chunks_skipped,
+        orphan_messages=result.orphan_messages, stop_reason=result.stop_reason,
+        stop_offset=result.stop_offset,
+        bytes_dropped=0 if result.data_complete else result.size - result.stop_offset)
+
+
+def scan_header(path: str | os.PathLike[str]) -> Header:
+    """The header record of ``path``; :class:`McapFileError` if it is not an MCAP log."""
+    return scan(path, header_only=True).header
+
+
+# ----------------------------------------------------------------------------- replay
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class LoggedMessage:
+    """One message read back: ``data`` is the decoded JSON record."""
+
+    topic: str
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    schema_name: str
+    data: dict[str, Any]
+
+    def can_message(self):
+        """The python-can ``Message`` of a raw CAN record (``bsc.CanFrame`` schema)."""
+        if self.schema_name != CAN_SCHEMA_NAME:
+            raise TypeError(f"{self.topic}: schema {self.schema_name} is not {CAN_SCHEMA_NAME}")
+        return can_frame_from_record(self.data)
+
+
+def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = None, *,
+                  start_s: float | None = None, duration_s: float | None = None,
+                  start_ns: int | None = None, end_ns: int | None = None
+                  ) -> Iterator[LoggedMessage]:
+    """Messages of ``topics`` (all when ``None``) in log-time order, JSON-decoded.
+
+    Time window: absolute ``[start_ns, end_ns)`` in the log time base, or ``start_s`` seconds
+    after the first message of the file and ``duration_s`` long (both may be combined with a
+    topic filter; the offsets count from the file's first message of ANY topic). The file must
+    be complete (a truncated file raises :class:`McapFileError`: run ``bsc recover`` first).
+    """
+    from mcap.reader import SeekingReader
+
+    path = Path(path)
+    scan_header(path)
+    ok, why = check_footer(path)
+    if not ok:
+        raise McapFileError(f"{path}: cannot replay, file is truncated ({why}); "
+                            f"run `bsc recover {path}` first")
+    topic_list = None if topics is None else [topics] if isinstance(topics, str) else list(topics)
+    with open(path, "rb") as f:
+        reader = SeekingReader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        if start_s is not None or duration_s is not None:
+            stats = summary.statistics if summary is not None else None
+            first = stats.message_start_time if stats is not None else 0
+            base = first if start_ns is None else start_ns
+            if start_s is not None:
+                base += round(start_s * 1e9)
+            start_ns = base
+            if duration_s is not None:
+                end_ns = base + round(duration_s * 1e9)
+        if start_ns is not None and end_ns is not None and end_ns <= start_ns:
+            return
+        messages = reader.iter_messages(topics=topic_list, log_time_order=True,
+                                        starting_at=start_ns, ending_before=end_ns)
+        while True:
+            try:
+                item = next(messages, None)
+                if item is None:
+                    return
+                schema, channel, msg = item
+                data = _decode(channel, msg)
+            except _PARSE_ERRORS as exc:      # CRC mismatch, bad zstd frame, bad JSON
+                raise McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
+                                    "copies everything that is intact") from exc
+            yield LoggedMessage(channel.topic, msg.log_time, msg.publish_time, msg.sequence,
+                                schema.name if schema else "", data)
+
+
+def read_can_frames(path: str | os.PathLike[str], buses: Iterable[str] | None = None,
+                    **window: Any) -> Iterator[tuple[str, Any]]:
+    """``(bus, can.Message)`` pairs of the raw CAN topics in log-time order.
+
+    ``buses`` are logical bus names (``ft0`` for topic ``/can/ft0``); all when ``None``.
+    ``window`` takes the time arguments of :func:`read_messages`.
+    """
+    from gateway.recorder import CAN_TOPIC_PREFIX
+
+    if buses is None:
+        with open(path, "rb") as f:
+            from mcap.reader import SeekingReader
+
+            scan_header(path)
+            ok, why = check_footer(path)
+            if not ok:
+                raise McapFileError(f"{path}: cannot replay, file is truncated ({why}); "
+                                    f"run `bsc recover {path}` first")
+            summary = SeekingReader(f).get_summary()
+            topics = [c.topic for c in summary.channels.values()
+                      if c.topic.startswith(CAN_TOPIC_PREFIX)] if summary else []
+    else:
+        topics = [CAN_TOPIC_PREFIX + b for b in buses]
+    if not topics:
+        return
+    for m in read_messages(path, topics, **window):
+        yield m.topic[len(CAN_TOPIC_PREFIX):], m.can_message()
+
+
+def _decode(channel: Channel, msg: Message) -> dict[str, Any]:
+    if channel.message_encoding != "json":
+        return {"_raw": msg.data}
+    return json.loads(msg.data)
+
+
+def to_dataclass(cls: type, record: dict[str, Any]):
+    """Rebuild a (frozen) sample dataclass from its decoded record: JSON lists become tuples
+    where the field is a tuple, as in :mod:`drivers.samples`."""
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in record:
+            continue
+        value = record[f.name]
+        if isinstance(value, list) and typing.get_origin(hints.get(f.name)) is tuple:
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def human_size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} B"  # pragma: no cover
+
+
+__all__ = ["ChannelInfo", "LogInfo", "LoggedMessage", "McapFileError", "RecoverReport",
+           "ScanResult", "check_footer", "inspect", "read_can_frames", "read_messages",
+           "recover", "scan", "scan_header", "to_dataclass"]

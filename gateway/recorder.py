@@ -1,0 +1,909 @@
+"""Record a session to MCAP: raw CAN frames, typed samples, metadata and attachments.
+
+One :class:`Recorder` writes one MCAP file per session (or a numbered series when rotation is
+on). Every channel carries a JSON schema (message encoding ``json``, schema encoding
+``jsonschema``) so the file opens in Foxglove, and every file holds its own metadata and
+attachments, so any single file can be read without the others. File layout, topics and the
+crash-safety guarantees are described in ``docs/recording.md``.
+
+Typical use (the lead wires this into ``bsc record`` and the demo)::
+
+    with Recorder("run.mcap", rotate_bytes=512 << 20) as rec:
+        rec.add_session_context(urdf_text=urdf, dbc_files={"ft.dbc": dbc}, software="bsc 0.1.0")
+        notifier = can.Notifier(bus, [driver, rec.can_listener("ft0")])
+        ...
+        rec.record("/samples/wrench/arm0", wrench_sample)     # any frozen dataclass or dict
+    print(rec.stats)                                          # nothing is ever dropped silently
+
+Threading: ``record*`` may be called from any number of threads (CAN notifier threads, zenoh
+callbacks); they encode to JSON in the caller's thread and append to a bounded FIFO. One writer
+thread owns the MCAP writer and the file.
+
+Queue semantics: FIFO, because every sample matters to a recording. The queue is bounded
+(``queue_size`` messages, default 65 536: about 6 s of a 10 kHz aggregate stream) so a stalled
+disk cannot eat the gateway's memory. When it is full the NEW message is refused: ``record*``
+returns ``False`` at once (never blocks the caller) and ``stats.dropped_queue_full`` counts it.
+Metadata, attachments and channel declarations are control items that bypass the bound, so they
+are never dropped.
+"""
+from __future__ import annotations
+
+import base64
+import collections
+import dataclasses
+import enum
+import json
+import os
+import socket
+import sys
+import threading
+import time
+import types
+import typing
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+CAN_TOPIC_PREFIX = "/can/"
+CAN_SCHEMA_NAME = "bsc.CanFrame"
+RECORDING_METADATA = "bsc.recording"      # written by the recorder into every file
+SESSION_METADATA = "bsc.session"          # add_session_context(): software version, scenario name
+ZENOH_KEYS_METADATA = "zenoh.keys"        # add_session_context(zenoh_keys=...): name -> key expr
+URDF_ATTACHMENT = "robot.urdf"
+SCENARIO_ATTACHMENT = "scenario.toml"
+DBC_ATTACHMENT_PREFIX = "dbc/"            # one attachment per DBC file: dbc/<file name>
+
+DEFAULT_CHUNK_SIZE = 128 * 1024
+DEFAULT_QUEUE_SIZE = 65_536
+DEFAULT_FLUSH_INTERVAL_S = 1.0
+
+# Message record = opcode(1) + length(8) + channel(2) + sequence(4) + log/publish time(8+8).
+_MESSAGE_OVERHEAD = 31
+_POLL_S = 0.01
+
+CAN_FRAME_SCHEMA: dict[str, Any] = {
+    "title": CAN_SCHEMA_NAME,
+    "description": "One raw CAN / CAN FD frame as python-can received it (bsc recorder).",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer", "description": "frame timestamp (python-can), ns"},
+        "arbitration_id": {"type": "integer"},
+        "is_extended_id": {"type": "boolean"},
+        "is_remote_frame": {"type": "boolean"},
+        "is_error_frame": {"type": "boolean"},
+        "is_fd": {"type": "boolean"},
+        "bitrate_switch": {"type": "boolean"},
+        "error_state_indicator": {"type": "boolean"},
+        "is_rx": {"type": "boolean"},
+        "dlc": {"type": "integer"},
+        "data": {"type": "string", "contentEncoding": "base64",
+                 "description": "payload bytes, base64"},
+        "channel": {"type": ["string", "integer", "null"],
+                    "description": "python-can channel the frame came from"},
+    },
+    "required": ["t_ns", "arbitration_id", "is_extended_id", "is_remote_frame",
+                 "is_error_frame", "is_fd", "bitrate_switch", "dlc", "data", "channel"],
+}
+
+
+class RecorderError(OSError):
+    """Recording failed (cannot write the file, disk full): data written before stays valid."""
+
+
+# ----------------------------------------------------------------------------- raw CAN frames
+
+def can_frame_to_record(msg) -> dict[str, Any]:
+    """A python-can ``Message`` as a JSON-ready dict (the ``bsc.CanFrame`` schema).
+
+    ``data`` is base64 and round-trips bit for bit; ``t_ns`` is ``round(timestamp * 1e9)``.
+    """
+    channel = msg.channel
+    if channel is not None and not isinstance(channel, (str, int)):
+        channel = str(channel)
+    return {
+        "t_ns": round(msg.timestamp * 1e9),
+        "arbitration_id": msg.arbitration_id,
+        "is_extended_id": msg.is_extended_id,
+        "is_remote_frame": msg.is_remote_frame,
+        "is_error_frame": msg.is_error_frame,
+        "is_fd": msg.is_fd,
+        "bitrate_switch": msg.bitrate_switch,
+        "error_state_indicator": msg.error_state_indicator,
+        "is_rx": msg.is_rx,
+        "dlc": msg.dlc,
+        "data": base64.b64encode(bytes(msg.data)).decode("ascii"),
+        "channel": channel,
+    }
+
+
+def can_frame_from_record(record: Mapping[str, Any]):
+    """The python-can ``Message`` back from a ``bsc.CanFrame`` dict (inverse of the above)."""
+    import can
+
+    return can.Message(
+        timestamp=record["t_ns"] / 1e9,
+        arbitration_id=record["arbitration_id"],
+        is_extended_id=record["is_extended_id"],
+        is_remote_frame=record["is_remote_frame"],
+        is_error_frame=record["is_error_frame"],
+        is_fd=record["is_fd"],
+        bitrate_switch=record["bitrate_switch"],
+        error_state_indicator=record.get("error_state_indicator", False),
+        is_rx=record.get("is_rx", True),
+        dlc=record["dlc"],
+        data=base64.b64decode(record["data"], validate=True),
+        channel=record["channel"],
+    )
+
+
+def can_topic(bus: str) -> str:
+    """The topic of raw frames from logical bus ``bus`` (``ft0`` -> ``/can/ft0``)."""
+    if not bus or not all(c.isalnum() or c in "_-." for c in bus):
+        raise ValueError(f"bus name {bus!r}: use letters, digits, '_', '-', '.'")
+    return CAN_TOPIC_PREFIX + bus
+
+
+# ----------------------------------------------------------------------------- JSON schemas
+
+def json_schema_for(cls: type) -> dict[str, Any]:
+    """A JSON schema (draft 2020-12 subset that Foxglove reads) from a dataclass's type hints."""
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"{cls!r} is not a dataclass type")
+    hints = typing.get_type_hints(cls)
+    props = {f.name: _type_schema(hints.get(f.name, Any)) for f in dataclasses.fields(cls)}
+    schema: dict[str, Any] = {"title": _qualname(cls), "type": "object", "properties": props,
+                              "required": list(props)}
+    doc = (cls.__doc__ or "").strip()
+    if doc and not doc.startswith(cls.__name__ + "("):   # skip dataclass's generated signature
+        schema["description"] = doc.split("\n\n")[0].replace("\n", " ")
+    return schema
+
+
+def _type_schema(tp: Any) -> dict[str, Any]:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is bool:
+        return {"type": "boolean"}
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return {"enum": [m.value for m in tp]}
+    if tp is int:
+        return {"type": "integer"}
+    if tp is float:
+        return {"type": "number"}
+    if tp is str:
+        return {"type": "string"}
+    if tp in (bytes, bytearray):
+        return {"type": "string", "contentEncoding": "base64"}
+    if tp is type(None):
+        return {"type": "null"}
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+        return json_schema_for(tp)
+    if origin in (typing.Union, types.UnionType):
+        return {"anyOf": [_type_schema(a) for a in args]}
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return {"type": "array", "items": _type_schema(args[0])}
+        if args:
+            items = [_type_schema(a) for a in args]
+            out: dict[str, Any] = {"type": "array", "minItems": len(args), "maxItems": len(args)}
+            out["items"] = items[0] if all(i == items[0] for i in items) else {}
+            out["prefixItems"] = items
+            return out
+        return {"type": "array"}
+    if origin in (list, collections.abc.Sequence, set, frozenset):
+        return {"type": "array", "items": _type_schema(args[0]) if args else {}}
+    if origin in (dict, collections.abc.Mapping):
+        return {"type": "object"}
+    return {}
+
+
+def _dict_schema(example: Mapping[str, Any], name: str) -> dict[str, Any]:
+    kinds = {bool: "boolean", int: "integer", float: "number", str: "string",
+             list: "array", tuple: "array", dict: "object", type(None): "null"}
+    props = {str(k): ({"type": kinds[type(v)]} if type(v) in kinds else {})
+             for k, v in example.items()}
+    return {"title": name, "type": "object", "properties": props}
+
+
+def _qualname(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _json_default(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (bytes, bytearray, memoryview)):
+        return base64.b64encode(bytes(obj)).decode("ascii")
+    if isinstance(obj, enum.Enum):
+        return obj.value
+    if hasattr(obj, "tolist"):           # numpy arrays and scalars
+        return obj.tolist()
+    raise TypeError(f"cannot record a {type(obj).__name__} as JSON")
+
+
+# Non-finite floats are written as the NaN/Infinity tokens (Python's json) rather than refused:
+# a recording keeps what the gateway saw, and our reader reads them back.
+_ENCODER = json.JSONEncoder(separators=(",", ":"), default=_json_default)
+_encode = _ENCODER.encode
+
+
+# ----------------------------------------------------------------------------- statistics
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class RecorderStats:
+    """A snapshot of what the recorder did. Counts are messages unless the name says otherwise.
+
+    ``received``: accepted into the queue. ``written``: handed to the MCAP writer.
+    ``flushed``: in chunks written to the file (these survive a SIGKILL of the process; they
+    survive a power cut only with ``fsync=True``). ``dropped_*``: refused or lost, by cause.
+    """
+
+    received: int
+    written: int
+    flushed: int
+    dropped_queue_full: int
+    dropped_write_error: int
+    dropped_closed: int
+    queue_depth: int
+    queue_high_water: int
+    chunks: int
+    files: int
+    bytes_written: int
+    error: str | None
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_queue_full + self.dropped_write_error + self.dropped_closed
+
+
+# ----------------------------------------------------------------------------- the recorder
+
+@dataclasses.dataclass(slots=True)
+class _Topic:
+    key: int
+    topic: str
+    schema_name: str
+    schema: bytes
+    channel_metadata: dict[str, str]
+    cls: type | None          # the dataclass recorded on this topic, None for dicts / raw
+
+
+class _Control:
+    """A queue item that is not a message: never subject to the queue bound."""
+
+    __slots__ = ("kind", "payload", "done")
+
+    def __init__(self, kind: str, payload: Any = None, done: threading.Event | None = None):
+        self.kind = kind
+        self.payload = payload
+        self.done = done
+
+
+class _FdStream:
+    """Unbuffered file for the MCAP writer: each write goes to the OS at once.
+
+    The writer emits a whole chunk (or metadata record) per ``write``, so nothing the writer has
+    finished is ever held in a Python buffer that a SIGKILL would lose.
+    """
+
+    def __init__(self, path: Path, overwrite: bool, fsync: bool):
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        self._fd = os.open(path, flags | getattr(os, "O_CLOEXEC", 0), 0o644)
+        self._pos = 0
+        self._fsync = fsync
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+            self._pos += n
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        if self._fsync:
+            os.fsync(self._fd)
+
+    def close(self, sync: bool = True) -> None:
+        if self._fd < 0:
+            return
+        fd, self._fd = self._fd, -1
+        try:
+            if sync:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+class Recorder:
+    """Writes typed records and raw CAN frames to MCAP from any thread; a context manager.
+
+    :param path: the MCAP file. With rotation on, files are ``<stem>_0000<suffix>``,
+        ``<stem>_0001<suffix>``, ... next to it (``run.mcap`` -> ``run_0000.mcap``).
+    :param chunk_size: uncompressed bytes per chunk (default 128 KiB). A chunk is the unit of
+        crash safety: a SIGKILL loses the chunk being filled plus whatever is still queued.
+    :param flush_interval_s: a partly filled chunk is written after this long anyway (default
+        1 s), so a slow stream is on disk within about a second.
+    :param queue_size: bound of the FIFO, in messages (see the module docstring).
+    :param rotate_bytes: start a new file once the current one has this many bytes.
+    :param rotate_s: start a new file after this many seconds (monotonic clock).
+    :param compression: ``"zstd"`` (default) or ``"none"``.
+    :param overwrite: replace existing files; by default an existing file is an error, so a
+        session never clobbers an earlier log.
+    :param fsync: fsync after every chunk (survives power loss; costs disk latency). Files are
+        always fsynced when they are finished.
+    :param metadata: metadata records ``name -> {key: value}`` for every file.
+
+    Opening the first file happens here, so a bad path (read-only directory, missing folder)
+    raises ``OSError`` at once. Later write failures (disk full) stop the recording: messages
+    are then counted in ``stats.dropped_write_error``, :attr:`error` is set, and :meth:`close`
+    raises :class:`RecorderError`. Files already finished stay valid; the failing file keeps
+    every chunk written before the failure (``bsc recover`` makes it valid again).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                 flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+                 queue_size: int = DEFAULT_QUEUE_SIZE, rotate_bytes: int | None = None,
+                 rotate_s: float | None = None, compression: str = "zstd",
+                 overwrite: bool = False, fsync: bool = False,
+                 metadata: Mapping[str, Mapping[str, str]] | None = None) -> None:
+        from mcap.writer import CompressionType
+
+        if chunk_size < 1024:
+            raise ValueError(f"chunk_size {chunk_size}: use at least 1024 bytes")
+        if queue_size < 1:
+            raise ValueError(f"queue_size {queue_size}: must be positive")
+        if rotate_bytes is not None and rotate_bytes < 4 * chunk_size:
+            raise ValueError(f"rotate_bytes {rotate_bytes}: use at least 4 chunks")
+        if rotate_s is not None and rotate_s <= 0:
+            raise ValueError(f"rotate_s {rotate_s}: must be positive")
+        try:
+            self._compression = {"zstd": CompressionType.ZSTD,
+                                 "none": CompressionType.NONE}[compression]
+        except KeyError:
+            raise ValueError(f"compression {compression!r}: use 'zstd' or 'none'") from None
+        self._base = Path(path)
+        self._rotating = rotate_bytes is not None or rotate_s is not None
+        self._chunk_size = chunk_size
+        self._flush_interval_s = flush_interval_s
+        self._queue_size = queue_size
+        self._rotate_bytes = rotate_bytes
+        self._rotate_s = rotate_s
+        self._overwrite = overwrite
+        self._fsync = fsync
+        self._session = uuid.uuid4().hex
+        self._start_utc = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+        self._queue: collections.deque = collections.deque()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()          # topic registration and caller-side counters
+        self._topics: dict[str, _Topic] = {}
+        self._topic_list: list[_Topic] = []     # by key; the writer thread reads it by index
+        self._metadata: list[tuple[str, dict[str, str]]] = []
+        self._attachments: list[tuple[str, str, bytes, int]] = []
+        self._closed = False
+        self._close_done = False
+        self._error: BaseException | None = None
+
+        # Caller side (under _lock): refused messages.
+        self._dropped_full = 0
+        self._dropped_closed = 0
+        self._controls_queued = 0
+        # Writer-thread side: only the writer thread writes these.
+        self._popped = 0
+        self._controls_popped = 0
+        self._written = 0
+        self._flushed = 0
+        self._dropped_error = 0
+        self._chunks = 0
+        self._bytes_done = 0                   # bytes in files already finished
+        self._high_water = 0
+        self._paths: list[Path] = []
+
+        # Per-file writer state (writer thread only, after the first open here).
+        self._writer = None
+        self._stream: _FdStream | None = None
+        self._channel_ids: list[int] = []
+        self._sequences: list[int] = []
+        self._pending_bytes = 0
+        self._pending_msgs = 0
+        self._chunk_started = 0.0
+        self._file_started = 0.0
+
+        for name, data in (metadata or {}).items():
+            self._metadata.append((name, _str_dict(name, data)))
+        try:
+            self._open_file()                  # raises OSError here, in the caller's thread
+        except BaseException:
+            if self._stream is not None:
+                self._stream.close(sync=False)
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"recorder:{self._base.name}",
+                                        daemon=True)
+        self._thread.start()
+
+    # --------------------------------------------------------------- public API (any thread)
+
+    def record(self, topic: str, sample: Any, log_time_ns: int | None = None) -> bool:
+        """Queue one typed record: a dataclass instance (usually from ``drivers.samples``) or a
+        JSON-ready mapping. Returns ``False`` when refused (queue full / closed; counted).
+
+        The channel's schema comes from the dataclass's fields on first use (or from the first
+        dict, unless :meth:`add_channel` declared it). ``log_time_ns`` defaults to the record's
+        ``t_ns`` (the sensor time base, same as the CAN timestamps) or the wall clock if it has
+        none. A topic holds one type: recording another type on it raises ``TypeError``.
+        """
+        info = self._topics.get(topic) or self._declare_for(topic, sample)
+        cls = type(sample)
+        if info.cls is not None:
+            if cls is not info.cls:
+                raise TypeError(f"topic {topic}: expected {info.cls.__name__}, "
+                                f"got {cls.__name__}")
+            names = _field_names(cls)
+            data = _encode({n: getattr(sample, n) for n in names})
+            t = sample.t_ns if log_time_ns is None and "t_ns" in names else log_time_ns
+        elif isinstance(sample, Mapping):
+            data = _encode(sample)
+            t = sample.get("t_ns") if log_time_ns is None else log_time_ns
+        else:
+            raise TypeError(f"topic {topic}: expected a mapping, got {cls.__name__}")
+        now = time.time_ns()
+        t = now if t is None else int(t)
+        if t < 0:
+            raise ValueError(f"topic {topic}: log time {t} ns is negative")
+        return self._put((info.key, t, now, data.encode()))
+
+    def record_can(self, bus: str, msg, log_time_ns: int | None = None) -> bool:
+        """Queue one raw CAN frame (python-can ``Message``) on topic ``/can/<bus>``."""
+        info = self._topics.get(CAN_TOPIC_PREFIX + bus) or self._declare_can(bus)
+        rec = can_frame_to_record(msg)
+        t = rec["t_ns"] if log_time_ns is None else int(log_time_ns)
+        if t < 0:
+            raise ValueError(f"bus {bus}: log time {t} ns is negative")
+        return self._put((info.key, t, time.time_ns(), _encode(rec).encode()))
+
+    def can_listener(self, bus: str):
+        """A python-can ``Listener`` that records every frame of ``bus`` (for a ``Notifier``)."""
+        import can
+
+        recorder = self
+        self._declare_can(bus)
+
+        class _RecordingListener(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                recorder.record_can(bus, msg)
+
+            def stop(self) -> None:
+                """The recorder outlives its listeners; close it yourself."""
+
+        return _RecordingListener()
+
+    def add_channel(self, topic: str, schema: Mapping[str, Any] | type,
+                    schema_name: str | None = None) -> None:
+        """Declare ``topic`` with an explicit JSON schema (a dict) or a dataclass type.
+
+        Optional: topics are declared on first use. Useful to give dict topics a full schema.
+        """
+        with self._lock:
+            if topic in self._topics:
+                raise ValueError(f"topic {topic} is already declared")
+            if isinstance(schema, type):
+                self._new_topic(topic, _qualname(schema), json_schema_for(schema), schema)
+            else:
+                name = schema_name or str(schema.get("title") or topic)
+                self._new_topic(topic, name, dict(schema), None)
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Add a metadata record (written to this file and every later rotated file)."""
+        entry = (name, _str_dict(name, data))
+        with self._lock:
+            self._check_open()
+            self._metadata.append(entry)
+            self._control("metadata", len(self._metadata) - 1)
+
+    def add_attachment(self, name: str, media_type: str, data: bytes,
+                       log_time_ns: int | None = None) -> None:
+        """Add an attachment (written to this file and every later rotated file)."""
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise TypeError(f"attachment {name}: data must be bytes, got {type(data).__name__}")
+        entry = (name, media_type, bytes(data), time.time_ns() if log_time_ns is None
+                 else log_time_ns)
+        with self._lock:
+            self._check_open()
+            self._attachments.append(entry)
+            self._control("attachment", len(self._attachments) - 1)
+
+    def add_session_context(self, *, urdf_text: str | None = None,
+                            dbc_files: Mapping[str, str | bytes] | None = None,
+                            scenario_text: str | None = None,
+                            zenoh_keys: Mapping[str, str] | None = None,
+                            software: str | None = None,
+                            extra: Mapping[str, str] | None = None) -> None:
+        """Attach what makes a log self-contained, under the documented names.
+
+        ``robot.urdf``, ``dbc/<name>`` and ``scenario.toml`` attachments; ``zenoh.keys``
+        metadata (key name -> key expression); ``bsc.session`` metadata (software version and
+        ``extra``).
+        """
+        if urdf_text is not None:
+            self.add_attachment(URDF_ATTACHMENT, "application/xml", urdf_text.encode())
+        for name, text in (dbc_files or {}).items():
+            body = text.encode() if isinstance(text, str) else bytes(text)
+            self.add_attachment(DBC_ATTACHMENT_PREFIX + Path(name).name, "text/plain", body)
+        if scenario_text is not None:
+            self.add_attachment(SCENARIO_ATTACHMENT, "application/toml", scenario_text.encode())
+        if zenoh_keys:
+            self.add_metadata(ZENOH_KEYS_METADATA, dict(zenoh_keys))
+        session = dict(extra or {})
+        if software is not None:
+            session["software"] = software
+        if session:
+            self.add_metadata(SESSION_METADATA, session)
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Write everything queued so far into the file (finishing the open chunk); wait.
+
+        Returns ``False`` on timeout. Flushing often makes small chunks: use it at checkpoints,
+        not per message.
+        """
+        if self._closed:
+            return True
+        done = threading.Event()
+        with self._lock:
+            self._control("flush", done=done)
+        return done.wait(timeout)
+
+    @property
+    def stats(self) -> RecorderStats:
+        depth = max(0, len(self._queue) - (self._controls_queued - self._controls_popped))
+        stream = self._stream
+        return RecorderStats(
+            received=self._popped + depth, written=self._written, flushed=self._flushed,
+            dropped_queue_full=self._dropped_full, dropped_write_error=self._dropped_error,
+            dropped_closed=self._dropped_closed, queue_depth=depth,
+            queue_high_water=max(self._high_water, depth), chunks=self._chunks,
+            files=len(self._paths),
+            bytes_written=self._bytes_done + (stream.tell() if stream is not None else 0),
+            error=None if self._error is None else _describe(self._error))
+
+    @property
+    def paths(self) -> list[Path]:
+        """Files this recorder has opened, oldest first."""
+        return list(self._paths)
+
+    @property
+    def error(self) -> BaseException | None:
+        """The write failure that stopped the recording, if any."""
+        return self._error
+
+    def close(self, timeout: float | None = 30.0) -> None:
+        """Drain the queue, finish the file (summary + footer) and stop. Closing twice is fine.
+
+        Raises :class:`RecorderError` (once) if the recording failed.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._control("stop")
+        self._thread.join(timeout)
+        if not self._thread.is_alive():
+            # Appended after the stop item (a race with close): never written, so counted.
+            late = sum(1 for item in self._queue if item.__class__ is tuple)
+            self._queue.clear()
+            with self._lock:
+                self._dropped_closed += late
+        else:
+            raise RecorderError(f"recorder for {self._base}: writer did not stop within "
+                                f"{timeout} s ({len(self._queue)} messages still queued)")
+        if self._error is not None and not self._close_done:
+            self._close_done = True
+            raise RecorderError(f"recording to {self._paths[-1] if self._paths else self._base} "
+                                f"failed: {_describe(self._error)}; "
+                                f"{self.stats.dropped_write_error} messages not written "
+                                f"(complete chunks before the failure are kept: "
+                                f"`bsc recover` the last file)") from self._error
+        self._close_done = True
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if exc_info[0] is None:
+            self.close()
+            return
+        try:
+            self.close()
+        except RecorderError:
+            pass        # the exception already propagating matters more; stats keep the count
+
+    # --------------------------------------------------------------- caller-side helpers
+
+    def _put(self, item: tuple) -> bool:
+        if len(self._queue) >= self._queue_size or self._closed:
+            with self._lock:
+                if self._closed:
+                    self._dropped_closed += 1
+                else:
+                    self._dropped_full += 1
+            return False
+        self._queue.append(item)
+        return True
+
+    def _control(self, kind: str, payload: Any = None, done: threading.Event | None = None):
+        # Called under _lock, so control items keep their order with declarations.
+        self._controls_queued += 1
+        self._queue.append(_Control(kind, payload, done))
+        self._wake.set()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"recorder for {self._base} is closed")
+
+    def _declare_for(self, topic: str, sample: Any) -> _Topic:
+        with self._lock:
+            if topic in self._topics:
+                return self._topics[topic]
+            cls = type(sample)
+            if dataclasses.is_dataclass(cls):
+                return self._new_topic(topic, _qualname(cls), json_schema_for(cls), cls)
+            if isinstance(sample, Mapping):
+                name = "bsc.record" + topic.replace("/", ".").rstrip(".")
+                return self._new_topic(topic, name, _dict_schema(sample, name), None)
+            raise TypeError(f"topic {topic}: cannot record a {cls.__name__} "
+                            "(use a dataclass instance or a mapping)")
+
+    def _declare_can(self, bus: str) -> _Topic:
+        topic = can_topic(bus)
+        with self._lock:
+            if topic in self._topics:
+                return self._topics[topic]
+            return self._new_topic(topic, CAN_SCHEMA_NAME, CAN_FRAME_SCHEMA, None,
+                                   {"bus": bus})
+
+    def _new_topic(self, topic: str, schema_name: str, schema: dict, cls: type | None,
+                   channel_metadata: dict[str, str] | None = None) -> _Topic:
+        self._check_open()
+        meta = dict(channel_metadata or {})
+        if cls is not None:
+            meta["bsc.type"] = _qualname(cls)
+        info = _Topic(len(self._topic_list), topic, schema_name,
+                      json.dumps(schema, indent=1).encode(), meta, cls)
+        self._topic_list.append(info)
+        self._control("topic", info)
+        self._topics[topic] = info         # published last: other threads then see it complete
+        return info
+
+    # --------------------------------------------------------------- writer thread
+
+    def _run(self) -> None:
+        queue = self._queue
+        popleft = queue.popleft
+        countdown = 256
+        while True:
+            try:
+                item = popleft()
+            except IndexError:
+                self._periodic()
+                self._wake.wait(_POLL_S)
+                self._wake.clear()
+                continue
+            if item.__class__ is tuple:
+                self._popped += 1
+                if self._error is None:
+                    try:
+                        self._write_message(item)
+                    except Exception as exc:  # noqa: BLE001 - surfaced by close() and stats
+                        self._fail(exc)
+                else:
+                    self._dropped_error += 1
+                countdown -= 1
+                if countdown == 0:
+                    countdown = 256
+                    self._high_water = max(self._high_water, len(queue) + 1)
+                    self._periodic()
+                continue
+            self._controls_popped += 1
+            if item.kind == "stop":
+                self._finish(final=True)
+                return
+            self._handle_control(item)
+
+    def _write_message(self, item: tuple) -> None:
+        key, log_time, publish_time, data = item
+        seq = self._sequences[key]
+        self._sequences[key] = seq + 1
+        self._writer.add_message(self._channel_ids[key], log_time, data, publish_time,
+                                 seq & 0xFFFFFFFF)
+        self._written += 1
+        if self._pending_msgs == 0:
+            self._chunk_started = time.monotonic()
+        self._pending_msgs += 1
+        self._pending_bytes += _MESSAGE_OVERHEAD + len(data)
+        if self._pending_bytes >= self._chunk_size:
+            self._flush_chunk()
+            if self._rotate_bytes is not None and self._stream.tell() >= self._rotate_bytes:
+                self._rotate()
+
+    def _handle_control(self, item: _Control) -> None:
+        try:
+            if self._error is None:
+                if item.kind == "topic":
+                    self._register(item.payload)
+                elif item.kind == "metadata":
+                    # A rotation may already have written it into this file (index < count).
+                    if item.payload >= self._metadata_written:
+                        self._writer.add_metadata(*self._metadata[item.payload])
+                        self._metadata_written = item.payload + 1
+                elif item.kind == "attachment":
+                    if item.payload >= self._attachments_written:
+                        name, media_type, data, log_time = self._attachments[item.payload]
+                        self._writer.add_attachment(log_time, log_time, name, media_type, data)
+                        self._attachments_written = item.payload + 1
+                elif item.kind == "flush":
+                    self._flush_chunk()
+        except Exception as exc:  # noqa: BLE001 - surfaced by close() and stats
+            self._fail(exc)
+        finally:
+            if item.done is not None:
+                item.done.set()
+
+    def _periodic(self) -> None:
+        if self._error is not None:
+            return
+        try:
+            now = time.monotonic()
+            if self._pending_msgs and now - self._chunk_started >= self._flush_interval_s:
+                self._flush_chunk()
+            if self._rotate_s is not None and now - self._file_started >= self._rotate_s:
+                self._rotate()
+        except Exception as exc:  # noqa: BLE001 - surfaced by close() and stats
+            self._fail(exc)
+
+    def _flush_chunk(self) -> None:
+        if self._pending_msgs == 0:
+            return
+        self._writer.flush()              # finishes the chunk and writes it + its indexes
+        self._flushed += self._pending_msgs
+        self._chunks += 1
+        self._pending_msgs = 0
+        self._pending_bytes = 0
+
+    def _rotate(self) -> None:
+        self._finish(final=False)
+        if self._error is None:
+            self._open_file()
+
+    def _finish(self, final: bool) -> None:
+        if self._writer is None or self._error is not None:
+            return
+        try:
+            pending = self._pending_msgs
+            self._writer.finish()
+            self._flushed += pending
+            self._chunks += 1 if pending else 0
+            self._pending_msgs = self._pending_bytes = 0
+            self._bytes_done += self._stream.tell()
+            self._stream.close(sync=True)
+            self._writer = None
+            self._stream = None
+        except Exception as exc:  # noqa: BLE001 - surfaced by close() and stats
+            self._fail(exc)
+
+    def _open_file(self) -> None:
+        from mcap.writer import Writer
+
+        path = (self._base.with_name(f"{self._base.stem}_{len(self._paths):04d}"
+                                     f"{self._base.suffix}") if self._rotating else self._base)
+        stream = _FdStream(path, self._overwrite, self._fsync)
+        self._paths.append(path)
+        self._stream = stream
+        # chunk_size is effectively infinite for the library: this class decides when a chunk
+        # ends, so it knows exactly which messages are on disk (stats.flushed).
+        writer = Writer(stream, chunk_size=1 << 62, compression=self._compression)
+        self._writer = writer
+        self._file_started = time.monotonic()
+        self._pending_msgs = self._pending_bytes = 0
+        writer.start(profile="", library=f"bsc-recorder ({_library_id()})")
+        writer.add_metadata(RECORDING_METADATA, self._recording_metadata(path))
+        with self._lock:
+            metadata = list(self._metadata)
+            attachments = list(self._attachments)
+            topics = list(self._topic_list)
+        for name, data in metadata:
+            writer.add_metadata(name, data)
+        for name, media_type, data, log_time in attachments:
+            writer.add_attachment(log_time, log_time, name, media_type, data)
+        self._metadata_written = len(metadata)
+        self._attachments_written = len(attachments)
+        self._schema_ids: dict[tuple[str, bytes], int] = {}
+        self._channel_ids = []
+        self._sequences = []
+        for info in topics:
+            self._register(info)
+
+    def _register(self, info: _Topic) -> None:
+        if info.key < len(self._channel_ids):
+            return                        # already registered in this file (rotation replay)
+        sid = self._schema_ids.get((info.schema_name, info.schema))
+        if sid is None:
+            sid = self._writer.register_schema(info.schema_name, "jsonschema", info.schema)
+            self._schema_ids[(info.schema_name, info.schema)] = sid
+        self._channel_ids.append(self._writer.register_channel(
+            info.topic, "json", sid, info.channel_metadata))
+        self._sequences.append(0)
+
+    def _recording_metadata(self, path: Path) -> dict[str, str]:
+        from gateway import __version__
+
+        return {
+            "software": f"bsc {__version__}",
+            "library": _library_id(),
+            "python": sys.version.split()[0],
+            "host": socket.gethostname(),
+            "session": self._session,
+            "session_start_utc": self._start_utc,
+            "file_index": str(len(self._paths) - 1),
+            "file_name": path.name,
+            "file_start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "chunk_size": str(self._chunk_size),
+            "flush_interval_s": str(self._flush_interval_s),
+            "queue_size": str(self._queue_size),
+            "time_base": "log_time = record t_ns (sensor/CAN clock); "
+                         "publish_time = recorder receipt, CLOCK_REALTIME",
+        }
+
+    def _fail(self, exc: BaseException) -> None:
+        if self._error is None:
+            self._error = exc
+        self._dropped_error += self._pending_msgs   # handed to the writer, never reached disk
+        self._pending_msgs = self._pending_bytes = 0
+        if self._stream is not None:
+            try:
+                self._stream.close(sync=False)
+            except OSError:
+                pass                      # the first error is the one worth reporting
+            self._stream = None
+        self._writer = None
+
+
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _field_names(cls: type) -> tuple[str, ...]:
+    names = _FIELD_NAMES.get(cls)
+    if names is None:
+        names = _FIELD_NAMES[cls] = tuple(f.name for f in dataclasses.fields(cls))
+    return names
+
+
+def _str_dict(name: str, data: Mapping[str, str]) -> dict[str, str]:
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+        raise TypeError(f"metadata {name}: keys and values must be str")
+    return dict(data)
+
+
+def _library_id() -> str:
+    from mcap.writer import LIBRARY_IDENTIFIER
+
+    return LIBRARY_IDENTIFIER
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f": {exc.filename}" if exc.filename else ""
+        return f"[Errno {exc.errno}] {exc.strerror}{where}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+__all__ = [
+    "CAN_FRAME_SCHEMA", "CAN_SCHEMA_NAME", "CAN_TOPIC_PREFIX", "DBC_ATTACHMENT_PREFIX",
+    "DEFAULT_CHUNK_SIZE", "DEFAULT_FLUSH_INTERVAL_S", "DEFAULT_QUEUE_SIZE",
+    "RECORDING_METADATA", "SCENARIO_ATTACHMENT", "SESSION_METADATA", "URDF_ATTACHMENT",
+    "ZENOH_KEYS_METADATA", "Recorder", "RecorderError", "RecorderStats",
+    "can_frame_from_record", "can_frame_to_record", "can_topic", "json_schema_for",
+]

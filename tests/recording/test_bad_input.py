@@ -1,0 +1,120 @@
+"""Bad files: every reader entry point and the CLI give one clear line, never a traceback/hang."""
+from __future__ import annotations
+
+import base64
+import struct
+import zlib
+
+import can
+import pytest
+
+from gateway import mcaplog
+from gateway.recorder import Recorder
+
+PNG = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + bytes(13) + b"\0\0\0\0"
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory):
+    path = tmp_path_factory.mktemp("good") / "good.mcap"
+    with Recorder(path, chunk_size=2048, compression="none") as rec:
+        rec.add_attachment("robot.urdf", "application/xml", b"<robot/>")
+        for i in range(400):
+            rec.record_can("ft0", can.Message(timestamp=1 + i * 1e-3, arbitration_id=1,
+                                              data=i.to_bytes(8, "little")))
+    return path.read_bytes()
+
+
+def _payload_at(data: bytes, i: int) -> int:
+    """Offset of frame ``i``'s base64 payload inside its (uncompressed) chunk."""
+    return data.index(base64.b64encode(i.to_bytes(8, "little")))
+
+
+def _flip(data: bytes, at: int) -> bytes:
+    return data[:at] + bytes([data[at] ^ 0xFF]) + data[at + 1:]
+
+
+# name -> (file bytes from the good file, expected: "error" message part or "recover")
+CASES = {
+    "empty": (lambda g: b"", "error", "empty file"),
+    "text": (lambda g: b"time,value\n1,2\n", "error", "not an MCAP file"),
+    "png": (lambda g: PNG, "error", "not an MCAP file"),
+    "magic only": (lambda g: g[:8], "error", "truncated before the first record"),
+    "half magic": (lambda g: g[:4], "error", "truncated inside the MCAP magic"),
+    "half header": (lambda g: g[:20], "error", "truncated before the first record"),
+    "zeros": (lambda g: bytes(4096), "error", "not an MCAP file"),
+    "magic then garbage": (lambda g: g[:8] + bytes(range(256)) * 4, "error", "no header"),
+    "truncated mid-file": (lambda g: g[: len(g) // 2], "recover", None),
+    "truncated by one byte": (lambda g: g[:-1], "recover", None),
+    "summary cut off": (lambda g: g[: len(g) - 200], "recover", None),
+    "flipped byte in a chunk": (lambda g: _flip(g, _payload_at(g, 200)), "recover", None),
+    "garbage appended": (lambda g: g[: len(g) // 2] + bytes(range(256)), "recover", None),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_file_table(name, good, tmp_path, bsc):
+    make, outcome, message = CASES[name]
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(make(good))
+    if outcome == "error":
+        for call in (lambda: mcaplog.inspect(path), lambda: mcaplog.recover(path),
+                     lambda: list(mcaplog.read_messages(path))):
+            with pytest.raises(mcaplog.McapFileError, match=message):
+                call()
+        for cmd in ("info", "recover"):
+            proc = bsc(cmd, path, timeout=30)
+            assert proc.returncode == 2, proc.stderr
+            assert proc.stdout == ""
+            assert proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
+            assert proc.stderr.startswith(f"bsc {cmd}: error: ")
+        assert not (tmp_path / "bad.recovered.mcap").exists()
+        return
+    info = mcaplog.inspect(path)
+    assert not info.complete
+    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
+        list(mcaplog.read_messages(path))
+    report = mcaplog.recover(path)
+    assert mcaplog.inspect(report.output).complete
+    frames = [int.from_bytes(m.data, "little") for _, m in mcaplog.read_can_frames(report.output)]
+    if name == "flipped byte in a chunk":
+        assert report.chunks_skipped == 1 and 0 < len(frames) < 400
+        assert frames == sorted(frames)
+    else:
+        assert frames == list(range(len(frames))) and len(frames) > 0
+    proc = bsc("info", path)
+    assert proc.returncode == 0 and "bsc recover" in proc.stdout
+
+
+def test_directory_and_missing_file_are_one_line_errors(tmp_path, bsc):
+    for target in (tmp_path, tmp_path / "missing.mcap"):
+        proc = bsc("info", target)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+        assert "Traceback" not in proc.stderr
+
+
+def test_recover_refuses_to_overwrite(good, tmp_path, bsc):
+    src = tmp_path / "in.mcap"
+    src.write_bytes(good[:-100])
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"keep")
+    proc = bsc("recover", src, "-o", out)
+    assert proc.returncode == 2 and "--force" in proc.stderr and out.read_bytes() == b"keep"
+    proc = bsc("recover", src, "-o", src)
+    assert proc.returncode == 2 and "overwrite the file being recovered" in proc.stderr
+    assert bsc("recover", src, "-o", out, "--force").returncode == 0
+    assert mcaplog.inspect(out).complete
+
+
+def test_crc_of_summary_is_checked(good, tmp_path):
+    path = tmp_path / "crc.mcap"
+    footer_crc_at = len(good) - 8 - 4
+    (crc,) = struct.unpack("<I", good[footer_crc_at:footer_crc_at + 4])
+    assert crc != 0 and crc == zlib.crc32(good[_summary_start(good):footer_crc_at])
+    path.write_bytes(_flip(good, _summary_start(good) + 20))     # inside the summary
+    ok, why = mcaplog.check_footer(path)
+    assert not ok and "CRC" in why
+
+
+def _summary_start(data: bytes) -> int:
+    return struct.unpack("<Q", data[-8 - 29 + 9:-8 - 29 + 17])[0]

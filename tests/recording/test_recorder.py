@@ -1,0 +1,332 @@
+"""Recorder unit tests: round trips, schemas, metadata, rotation, back-pressure, failures."""
+from __future__ import annotations
+
+import json
+import threading
+
+import can
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.samples import ImuSample, JointSample, WrenchSample
+from gateway import mcaplog
+from gateway.recorder import (CAN_SCHEMA_NAME, RECORDING_METADATA, Recorder, RecorderError,
+                              can_frame_from_record, can_frame_to_record, json_schema_for)
+
+WRENCH = WrenchSample("arm0", 1_000_000_000, 7, (1.0, -2.5, 3.0), (0.1, 0.2, -0.3), False, 4)
+
+
+def _frame(i: int, **kw) -> can.Message:
+    kw.setdefault("data", i.to_bytes(4, "little") + bytes(4))
+    return can.Message(timestamp=1.0 + i * 1e-3, arbitration_id=0x100 + i % 16,
+                       is_extended_id=False, channel="vcan0", **kw)
+
+
+# ----------------------------------------------------------------------------- raw CAN records
+
+can_frames = st.builds(
+    lambda fd, ext, remote, err, brs, esi, rx, arb, payload, ts, chan: can.Message(
+        timestamp=ts, arbitration_id=arb & (0x1FFFFFFF if ext else 0x7FF), is_extended_id=ext,
+        is_remote_frame=remote and not fd, is_error_frame=err, is_fd=fd, bitrate_switch=brs and fd,
+        error_state_indicator=esi and fd, is_rx=rx, channel=chan,
+        data=b"" if (remote and not fd) else payload[: 64 if fd else 8],
+        dlc=None if not (remote and not fd) else len(payload[:8])),
+    st.booleans(), st.booleans(), st.booleans(), st.booleans(), st.booleans(), st.booleans(),
+    st.booleans(), st.integers(0, 0x1FFFFFFF), st.binary(max_size=64),
+    st.floats(0, 4e9, allow_nan=False), st.one_of(st.none(), st.text(max_size=8),
+                                                   st.integers(0, 7)))
+
+
+@given(can_frames)
+@settings(max_examples=300, deadline=None)
+def test_can_record_round_trips_bit_for_bit(msg):
+    rec = json.loads(json.dumps(can_frame_to_record(msg)))      # through JSON, as in the file
+    back = can_frame_from_record(rec)
+    assert bytes(back.data) == bytes(msg.data)
+    for name in ("arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
+                 "is_fd", "bitrate_switch", "error_state_indicator", "is_rx", "dlc", "channel"):
+        assert getattr(back, name) == getattr(msg, name), name
+    assert abs(back.timestamp - msg.timestamp) < 1e-6           # ns resolution, float seconds
+
+
+def test_schema_from_dataclass_fields():
+    schema = json_schema_for(WrenchSample)
+    props = schema["properties"]
+    assert schema["title"] == "drivers.samples.WrenchSample"
+    assert props["t_ns"] == {"type": "integer"}
+    assert props["device"] == {"type": "string"}
+    assert props["saturated"] == {"type": "boolean"}
+    assert props["force_n"]["type"] == "array" and props["force_n"]["minItems"] == 3
+    assert props["force_n"]["items"] == {"type": "number"}
+    assert set(schema["required"]) == set(props)
+    assert json_schema_for(ImuSample)["properties"]["quat_wxyz"]["maxItems"] == 4
+
+
+# ----------------------------------------------------------------------------- file contents
+
+def test_records_read_back_in_log_time_order_with_schemas(tmp_path):
+    path = tmp_path / "s.mcap"
+    with Recorder(path, chunk_size=4096) as rec:
+        rec.add_session_context(urdf_text="<robot name='r'/>", dbc_files={"ft.dbc": "VERSION \"\""},
+                                scenario_text="[run]\n", zenoh_keys={"wrench": "bsc/ft/*"},
+                                software="bsc test")
+        rec.add_metadata("custom", {"k": "v"})
+        rec.add_attachment("notes.txt", "text/plain", b"hello")
+        for i in range(300):
+            assert rec.record_can("ft0", _frame(i))
+            rec.record("/samples/joint", JointSample("arm0/j1", 1_000_000_000 + i * 2_000_000 + 1,
+                                                     i, 0.1 * i, 0.0))
+        rec.record("/misc", {"t_ns": 1_000_500_000, "note": "dict record", "x": 1.5})
+    assert rec.stats.dropped == 0 and rec.stats.written == rec.stats.flushed == 601
+    info = mcaplog.inspect(path)
+    assert info.complete and info.message_count == 601
+    assert {c.topic: c.count for c in info.channels} == {"/can/ft0": 300, "/samples/joint": 300,
+                                                        "/misc": 1}
+    assert {"bsc.recording", "bsc.session", "zenoh.keys", "custom"} <= set(info.metadata)
+    assert info.metadata["zenoh.keys"] == {"wrench": "bsc/ft/*"}
+    assert {a["name"] for a in info.attachments} == {"robot.urdf", "dbc/ft.dbc", "scenario.toml",
+                                                     "notes.txt"}
+    msgs = list(mcaplog.read_messages(path))
+    times = [m.log_time_ns for m in msgs]
+    assert times == sorted(times)
+    can_msgs = [m for m in msgs if m.topic == "/can/ft0"]
+    assert [m.schema_name for m in can_msgs[:1]] == [CAN_SCHEMA_NAME]
+    assert [int.from_bytes(m.can_message().data[:4], "little") for m in can_msgs] == list(range(300))
+    assert [m.sequence for m in can_msgs] == list(range(300))
+    joint = [m for m in msgs if m.topic == "/samples/joint"]
+    sample = mcaplog.to_dataclass(JointSample, joint[5].data)
+    assert sample == JointSample("arm0/j1", 1_010_000_001, 5, 0.5, 0.0)
+
+
+def test_typed_sample_round_trip_and_every_channel_has_a_json_schema(tmp_path):
+    from mcap.reader import make_reader
+
+    path = tmp_path / "w.mcap"
+    with Recorder(path) as rec:
+        rec.record("/samples/wrench/arm0", WRENCH)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        for ch in summary.channels.values():
+            assert ch.message_encoding == "json"
+            schema = summary.schemas[ch.schema_id]
+            assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
+    (m,) = mcaplog.read_messages(path, ["/samples/wrench/arm0"])
+    assert m.log_time_ns == WRENCH.t_ns
+    assert mcaplog.to_dataclass(WrenchSample, m.data) == WRENCH
+
+
+def test_time_window_filters(tmp_path):
+    path = tmp_path / "t.mcap"
+    with Recorder(path) as rec:
+        for i in range(100):                        # one frame per 10 ms from t = 1 s
+            rec.record_can("b", _frame(0), log_time_ns=1_000_000_000 + i * 10_000_000)
+    window = list(mcaplog.read_messages(path, start_s=0.2, duration_s=0.1))
+    assert [m.log_time_ns for m in window] == [1_200_000_000 + i * 10_000_000 for i in range(10)]
+    absolute = list(mcaplog.read_can_frames(path, start_ns=1_500_000_000, end_ns=1_520_000_000))
+    assert [bus for bus, _ in absolute] == ["b", "b"]
+
+
+def test_notifier_listener_records_frames_from_a_virtual_bus(tmp_path):
+    path = tmp_path / "bus.mcap"
+    with can.Bus(interface="virtual", channel="rec-test", receive_own_messages=False,
+                 ignore_config=True) as rx, \
+         can.Bus(interface="virtual", channel="rec-test", ignore_config=True) as tx, \
+         Recorder(path) as rec:
+        got = threading.Event()
+        count = [0]
+
+        class Counter(can.Listener):
+            def on_message_received(self, msg):
+                count[0] += 1
+                if count[0] == 20:
+                    got.set()
+
+        notifier = can.Notifier(rx, [rec.can_listener("ft0"), Counter()])
+        try:
+            for i in range(20):
+                tx.send(_frame(i))
+            assert got.wait(5)
+        finally:
+            notifier.stop()
+    frames = [m for _, m in mcaplog.read_can_frames(path)]
+    assert [bytes(m.data) for m in frames] == [bytes(_frame(i).data) for i in range(20)]
+
+
+# ----------------------------------------------------------------------------- lifecycle
+
+def test_close_twice_is_harmless_and_late_records_are_counted(tmp_path):
+    rec = Recorder(tmp_path / "c.mcap")
+    rec.record("/w", WRENCH)
+    rec.close()
+    rec.close()
+    assert rec.record("/w", WRENCH) is False
+    assert rec.stats.dropped_closed == 1 and rec.stats.written == 1
+    with pytest.raises(ValueError, match="closed"):
+        rec.add_metadata("late", {})
+
+
+def test_one_type_per_topic_and_bad_inputs_raise(tmp_path):
+    with Recorder(tmp_path / "t.mcap") as rec:
+        rec.record("/w", WRENCH)
+        with pytest.raises(TypeError, match="expected WrenchSample"):
+            rec.record("/w", ImuSample(1, 1, (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)))
+        with pytest.raises(TypeError):
+            rec.record("/o", object())
+        with pytest.raises(TypeError, match="str"):
+            rec.add_metadata("m", {"k": 1})
+        with pytest.raises(ValueError):
+            rec.record_can("bad bus/name", _frame(0))
+
+
+def test_existing_file_is_not_clobbered(tmp_path):
+    path = tmp_path / "keep.mcap"
+    path.write_bytes(b"precious")
+    with pytest.raises(FileExistsError):
+        Recorder(path)
+    assert path.read_bytes() == b"precious"
+    Recorder(path, overwrite=True).close()
+    assert mcaplog.inspect(path).complete
+
+
+def test_queue_full_is_counted_never_silent(tmp_path):
+    rec = Recorder(tmp_path / "q.mcap", queue_size=10)
+    gate = threading.Event()
+    real = rec._write_message
+
+    def stalled_disk(item):                   # the writer thread blocks, as on a stuck disk
+        gate.wait(10)
+        real(item)
+
+    rec._write_message = stalled_disk
+    results = [rec.record_can("b", _frame(i)) for i in range(50)]
+    stats = rec.stats
+    assert stats.dropped_queue_full == results.count(False) >= 39
+    assert stats.received == results.count(True)
+    gate.set()
+    rec.close()
+    final = rec.stats
+    assert final.written == final.flushed == results.count(True)
+    assert final.received + final.dropped_queue_full == 50
+    assert mcaplog.inspect(rec.paths[0]).message_count == final.written
+
+
+def test_rotation_by_size_each_file_self_contained(tmp_path):
+    base = tmp_path / "rot.mcap"
+    with Recorder(base, chunk_size=4096, rotate_bytes=16384) as rec:
+        rec.add_session_context(urdf_text="<robot/>", zenoh_keys={"a": "b"})
+        for i in range(3000):
+            rec.record_can("ft0", _frame(i))
+            if i == 1500:
+                rec.add_metadata("midway", {"i": str(i)})   # joins the current and later files
+    paths = rec.paths
+    assert len(paths) >= 3
+    assert [p.name for p in paths] == [f"rot_{i:04d}.mcap" for i in range(len(paths))]
+    total = 0
+    for p in paths:
+        info = mcaplog.inspect(p)
+        assert info.complete
+        assert {"bsc.recording", "zenoh.keys"} <= set(info.metadata)
+        assert [a["name"] for a in info.attachments] == ["robot.urdf"]
+        assert [c.topic for c in info.channels] == ["/can/ft0"]
+        total += info.message_count
+    assert total == 3000 == rec.stats.flushed
+    assert "midway" in mcaplog.inspect(paths[-1]).metadata
+    assert "midway" not in mcaplog.inspect(paths[0]).metadata
+    indexes = [mcaplog.inspect(p).metadata["bsc.recording"]["file_index"] for p in paths]
+    assert indexes == [str(i) for i in range(len(paths))]
+
+
+def test_rotation_by_duration(tmp_path, monkeypatch):
+    import time as real_time
+    import types
+
+    import gateway.recorder as recorder_module
+
+    clock = [0.0]                              # the recorder's monotonic clock, driven by hand
+    fake = types.SimpleNamespace(monotonic=lambda: clock[0], time_ns=real_time.time_ns,
+                                 gmtime=real_time.gmtime, strftime=real_time.strftime)
+    monkeypatch.setattr(recorder_module, "time", fake)
+    with Recorder(tmp_path / "d.mcap", rotate_s=10.0) as rec:
+        for i in range(30):
+            clock[0] = float(i)                # 30 "seconds" of recording, one frame each
+            rec.record_can("b", _frame(i))
+            assert rec.flush(5)
+    counts = [mcaplog.inspect(p).message_count for p in rec.paths]
+    assert len(counts) == 3 and sum(counts) == 30
+
+
+# ----------------------------------------------------------------------------- failures
+
+def test_read_only_directory_fails_clearly_at_open(read_only_dir):
+    with pytest.raises(OSError) as err:
+        Recorder(read_only_dir / "x.mcap")
+    assert "x.mcap" in str(err.value)
+
+
+def test_full_disk_keeps_what_was_written(tiny_fs):
+    rec = Recorder(tiny_fs / "full.mcap", chunk_size=4096, rotate_bytes=32768,
+                   compression="none")
+    rec.add_attachment("robot.urdf", "application/xml", b"<robot/>" * 100)
+    i = 0
+    while rec.error is None and i < 200_000:
+        rec.record_can("ft0", _frame(i, data=i.to_bytes(8, "little")))
+        i += 1
+        if i % 500 == 0:
+            rec.flush(10)
+    with pytest.raises(RecorderError, match="No space left on device"):
+        rec.close()
+    rec.close()                                # twice: harmless, no second raise
+    stats = rec.stats
+    assert stats.dropped_write_error > 0 and stats.written + stats.dropped_queue_full <= i
+    *finished, last = rec.paths
+    assert finished, "expected at least one rotated file before the disk filled"
+    recovered = 0
+    for p in finished:
+        info = mcaplog.inspect(p)
+        assert info.complete
+        recovered += info.message_count
+    if last.stat().st_size > 0:
+        out = tiny_fs.parent / "recovered.mcap"
+        try:
+            report = mcaplog.recover(last, out)
+            recovered += report.messages
+        except mcaplog.McapFileError:
+            pass                               # the disk filled before the header was written
+    # Everything counted as flushed is back. The chunk in flight when the disk filled is counted
+    # as dropped; it comes back too if the chunk record itself was complete (only its index or
+    # the summary failed), hence <= written rather than == flushed.
+    assert stats.flushed <= recovered <= stats.written
+
+
+def test_many_producer_threads_lose_nothing(tmp_path):
+    path = tmp_path / "mt.mcap"
+    with Recorder(path, chunk_size=8192) as rec:
+        def produce(bus: str):
+            for i in range(3000):
+                assert rec.record_can(bus, _frame(i))
+
+        threads = [threading.Thread(target=produce, args=(f"b{k}",)) for k in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert rec.stats.flushed == 12000 and rec.stats.dropped == 0
+    for k in range(4):
+        frames = [int.from_bytes(m.data[:4], "little")
+                  for _, m in mcaplog.read_can_frames(path, [f"b{k}"])]
+        assert frames == list(range(3000))
+
+
+def test_flushed_data_is_in_the_file_while_recording(tmp_path):
+    path = tmp_path / "open.mcap"
+    with Recorder(path, flush_interval_s=3600) as rec:
+        rec.add_metadata("m", {"a": "b"})
+        for i in range(100):
+            rec.record_can("ft0", _frame(i))
+        assert rec.flush(10)
+        assert rec.stats.flushed == 100
+        live = mcaplog.inspect(path)              # the file is still open: no footer yet
+        assert not live.complete and live.message_count == 100 and "m" in live.metadata
+    assert mcaplog.inspect(path).complete
