@@ -92,3 +92,47 @@ class ThrusterCommand:
 
 
 Sample = WrenchSample | ImuSample | JointSample | TorqueCommand | ThrusterCommand
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceHealth:
+    """Health of one device (``<arm>``, ``<arm>/<joint>``, ``imu``, ``thrusters``, or a command
+    stream), a snapshot taken at ``t_ns`` (host clock, same base as frame timestamps).
+
+    ``rejected``: frames or samples dropped, by reason (sorted ``(reason, count)`` pairs; reasons
+    are listed in drivers/health.py). ``lost``: samples skipped in the counter sequence.
+    ``stale``: no sample within ``stale_periods`` nominal periods (or none yet).
+    ``faults``: the device's last status with only its fault bits kept (0 = healthy).
+    """
+
+    device: str
+    bus: str
+    t_ns: int
+    samples: int
+    lost: int
+    saturated: int
+    rejected: tuple[tuple[str, int], ...]
+    last_t_ns: int
+    stale: bool
+    status: int = 0
+    faults: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class BusHealth:
+    """Health of one CAN bus, a snapshot at ``t_ns``.
+
+    ``frames``: all frames seen; ``rejected``: bus-level rejections by reason (unknown ids,
+    error/remote frames, ...). ``load``: measured worst-case (bit-stuffed) load since the
+    previous snapshot, fraction of the bit rate. ``nodes``: last heartbeat state per node.
+    """
+
+    bus: str
+    t_ns: int
+    frames: int
+    rejected: tuple[tuple[str, int], ...]
+    load: float
+    nodes: tuple[tuple[str, int], ...] = ()
+
+
+Health = DeviceHealth | BusHealth

@@ -1,0 +1,307 @@
+"""The drivers: one python-can ``Listener`` per device type, given a bus, never opening one.
+
+Put them under a ``can.Notifier`` (see :func:`listeners_for`). Each driver dispatches by
+arbitration id to its own frames and ignores the rest; :class:`BusMonitor` counts every frame,
+measures the load, reads heartbeats and counts the frames no driver owns (unknown ids, error
+frames, 29-bit ids). So each frame is counted once: by its owner, or by the monitor.
+
+Decoded samples go to ``sink(sample)``, called on the notifier thread in arrival order (FIFO:
+the sink decides whether to queue, drop or publish). A frame can never raise out of a driver:
+everything a bus can deliver is validated first and rejected by reason (drivers/health.py);
+an exception from the sink is a programming error and propagates (python-can's Notifier then
+calls ``on_error``, which logs it).
+
+Multi-frame samples (F/T 2 frames, IMU 6, thruster command 3) are assembled by counter in any
+order, and complete only when every part carries the same counter. The completed sample's
+``t_ns`` is the timestamp of the frame that completed it.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Iterable
+
+import can
+
+from drivers import frames, wire
+from drivers.health import BusCounters, DeviceCounters
+from drivers.samples import BusHealth, DeviceHealth, Sample
+
+log = logging.getLogger(__name__)
+
+Sink = Callable[[Sample], None]
+
+
+def _t_ns(msg: can.Message) -> int:
+    return int(round(msg.timestamp * 1e9))
+
+
+class _Assembler:
+    """Collects the parts of one multi-frame sample. Frame ids -> payloads, for one counter."""
+
+    __slots__ = ("n", "counter", "parts")
+
+    def __init__(self, n: int):
+        self.n = n
+        self.counter = -1
+        self.parts: dict[int, bytes] = {}
+
+    def add(self, frame_id: int, counter: int, data: bytes, dev: DeviceCounters) -> dict[int, bytes] | None:
+        parts = self.parts
+        if parts and counter != self.counter:
+            dev.reject("incomplete")
+            parts = self.parts = {}
+        elif frame_id in parts:
+            dev.reject("duplicate")
+            return None
+        self.counter = counter
+        parts[frame_id] = data
+        if len(parts) == self.n:
+            self.parts = {}
+            return parts
+        return None
+
+
+class Driver(can.Listener):
+    """Base of the device drivers: id dispatch and frame validation against the DBC.
+
+    Subclasses fill ``self._route``: frame id -> (Layout, DeviceCounters, handler(msg, data)).
+    ``fd=True`` accepts CAN FD frames as well as classic ones (the FD option keeps the payloads).
+    """
+
+    def __init__(self, bus: str, sink: Sink, fd: bool = False):
+        self.bus, self.sink, self.fd = bus, sink, fd
+        self._route: dict[int, tuple[wire.Layout, DeviceCounters, Callable[[can.Message, bytes], None]]] = {}
+        self.errors = 0
+
+    @property
+    def ids(self) -> frozenset[int]:
+        return frozenset(self._route)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        route = self._route.get(msg.arbitration_id)
+        if route is None or msg.is_error_frame or msg.is_extended_id:
+            return                                  # not ours: the BusMonitor counts it
+        lay, dev, handler = route
+        if msg.is_remote_frame:
+            dev.rejected["remote_frame"] += 1
+            return
+        if msg.is_fd and not self.fd:
+            dev.rejected["fd_on_classic"] += 1
+            return
+        data = msg.data
+        if data is None or len(data) != lay.length or msg.dlc != lay.length:
+            dev.rejected["dlc"] += 1
+            return
+        handler(msg, bytes(data))
+
+    def on_error(self, exc: Exception) -> None:
+        self.errors += 1
+        log.error("%s on bus %s: %r", type(self).__name__, self.bus, exc)
+
+    def stop(self) -> None:
+        """Nothing to release (the bus belongs to the caller); harmless twice."""
+
+    def counters(self) -> list[DeviceCounters]:
+        seen: dict[int, DeviceCounters] = {}
+        for _, dev, _ in self._route.values():
+            seen.setdefault(id(dev), dev)
+        return list(seen.values())
+
+    def health(self, now_ns: int) -> list[DeviceHealth]:
+        return [d.snapshot(now_ns) for d in self.counters()]
+
+
+def _period_ns(kind: str, frame_id: int) -> int:
+    return wire.layouts(kind)[frame_id].cycle_ms * 1_000_000
+
+
+class FtDriver(Driver):
+    """The six-axis F/T sensor of one arm (``FT_SG_A`` + ``FT_SG_B``) -> :class:`WrenchSample`."""
+
+    def __init__(self, arm: str, sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__(arm, sink, fd)
+        self.device = arm
+        self.dev = DeviceCounters(arm, arm, _period_ns("arm", wire.FT_A_ID), wire.FT_FAULT, stale_periods)
+        self._asm = _Assembler(2)
+        for i in frames.FT_PARTS:
+            self._route[i] = (wire.layouts("arm")[i], self.dev, self._part)
+
+    def _part(self, msg: can.Message, data: bytes) -> None:
+        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev)
+        if parts is None:
+            return
+        s = frames.decode_wrench(parts[wire.FT_A_ID], parts[wire.FT_B_ID], self.device, _t_ns(msg))
+        if self.dev.sequence(s.counter):
+            self.dev.accept(s.t_ns, s.saturated, s.status)
+            self.sink(s)
+
+
+class JointDriver(Driver):
+    """The joint drives of one arm (``JOINT_STATE_J<j>``) -> :class:`JointSample` per joint."""
+
+    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__(arm, sink, fd)
+        self.devices = [f"{arm}/{j}" for j in joints]
+        if len(self.devices) > wire.MAX_JOINTS:
+            raise wire.WireError(f"arm {arm}: {len(self.devices)} joints, the contract has {wire.MAX_JOINTS} slots")
+        lays = wire.layouts("arm")
+        for k, name in enumerate(self.devices):
+            i = wire.JOINT_STATE_BASE + k
+            dev = DeviceCounters(name, arm, _period_ns("arm", i), wire.DRIVE_FAULT, stale_periods)
+            self._route[i] = (lays[i], dev, self._make(name, dev))
+
+    def _make(self, name: str, dev: DeviceCounters):
+        def handle(msg: can.Message, data: bytes) -> None:
+            s = frames.decode_joint(data, name, _t_ns(msg))
+            if dev.sequence(s.counter):
+                dev.accept(s.t_ns, s.saturated, s.status)
+                self.sink(s)
+        return handle
+
+
+class TorqueCommandDriver(Driver):
+    """The joint torque commands of one arm (``JOINT_TORQUE_CMD_G<g>``) -> :class:`TorqueCommand`.
+
+    One health entry ``<arm>/torque_cmd`` per command frame group ``g`` (``<arm>/torque_cmd/g``
+    when the arm has more than 3 joints).
+    """
+
+    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__(arm, sink, fd)
+        names = [f"{arm}/{j}" for j in joints]
+        lays = wire.layouts("arm")
+        ngroups = -(-len(names) // wire.CMD_GROUP)
+        for g in range(ngroups):
+            i = wire.TORQUE_CMD_BASE + g
+            slots = names[g * wire.CMD_GROUP:(g + 1) * wire.CMD_GROUP]
+            slots += [None] * (wire.CMD_GROUP - len(slots))
+            dname = f"{arm}/torque_cmd" + (f"/{g}" if ngroups > 1 else "")
+            dev = DeviceCounters(dname, arm, _period_ns("arm", i), 0, stale_periods)
+            self._route[i] = (lays[i], dev, self._make(slots, dev))
+
+    def _make(self, slots, dev: DeviceCounters):
+        def handle(msg: can.Message, data: bytes) -> None:
+            cmds = frames.decode_torque_commands(data, slots, _t_ns(msg))
+            if dev.sequence(data[0]):
+                dev.accept(_t_ns(msg), any(c.saturated for c in cmds), 0)
+                for c in cmds:
+                    self.sink(c)
+        return handle
+
+
+class _MultiFrameDriver(Driver):
+    _parts: tuple[int, ...] = ()
+
+    def __init__(self, device: str, sink: Sink, fd: bool, stale_periods: int, fault_mask: int):
+        super().__init__(wire.SPACECRAFT_BUS, sink, fd)
+        self.device = device
+        lays = wire.layouts("spacecraft")
+        self.dev = DeviceCounters(device, self.bus, _period_ns("spacecraft", self._parts[0]), fault_mask, stale_periods)
+        self._asm = _Assembler(len(self._parts))
+        for i in self._parts:
+            self._route[i] = (lays[i], self.dev, self._part)
+
+    def _decode(self, parts: dict[int, bytes], t_ns: int):
+        raise NotImplementedError
+
+    def _part(self, msg: can.Message, data: bytes) -> None:
+        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev)
+        if parts is None:
+            return
+        s = self._decode(parts, _t_ns(msg))
+        if self.dev.sequence(s.counter):
+            self.dev.accept(s.t_ns, s.saturated, getattr(s, "status", 0))
+            self.sink(s)
+
+
+class ImuDriver(_MultiFrameDriver):
+    """The spacecraft IMU (six frames per sample) -> :class:`ImuSample`."""
+
+    _parts = frames.IMU_PARTS
+
+    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__("imu", sink, fd, stale_periods, wire.IMU_FAULT)
+
+    def _decode(self, parts, t_ns):
+        return frames.decode_imu(parts, t_ns)
+
+
+class ThrusterCommandDriver(_MultiFrameDriver):
+    """The thruster commands (three frames per control cycle) -> :class:`ThrusterCommand`."""
+
+    _parts = frames.THRUSTER_PARTS
+
+    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__("thrusters", sink, fd, stale_periods, 0)
+
+    def _decode(self, parts, t_ns):
+        return frames.decode_thruster(parts, t_ns)
+
+
+class BusMonitor(can.Listener):
+    """Counts every frame of one bus, measures its worst-case load, reads heartbeats, and counts
+    the frames no driver owns. ``owned`` = the ids the drivers on this bus handle."""
+
+    def __init__(self, spec: wire.BusSpec, owned: Iterable[int], fd: bool = False):
+        self.spec, self.fd = spec, fd
+        self.counters = BusCounters(spec.name)
+        self._owned = frozenset(owned)
+        lays = wire.layouts(spec.kind)
+        self._heartbeats = {i: lays[i] for i in spec.ids if i >= wire.HEARTBEAT_BASE and i < wire.HEARTBEAT_BASE + 0x80}
+        self._classic_time = [wire.frame_time_s(n) for n in range(9)]
+
+    def on_message_received(self, msg: can.Message) -> None:
+        c = self.counters
+        c.frames += 1
+        n = len(msg.data) if msg.data is not None else 0
+        if msg.is_fd:
+            c.busy_s += wire.fd_frame_time_s(n)
+        else:
+            c.busy_s += self._classic_time[min(msg.dlc if 0 <= msg.dlc <= 8 else 8, 8)]
+        if msg.is_error_frame:
+            c.rejected["error_frame"] += 1
+            return
+        i = msg.arbitration_id
+        if msg.is_extended_id:
+            c.rejected["extended_id"] += 1
+            return
+        if i in self._owned:
+            return
+        lay = self._heartbeats.get(i)
+        if lay is None:
+            c.rejected["unknown_id"] += 1
+            return
+        if msg.is_remote_frame:
+            c.rejected["remote_frame"] += 1
+        elif msg.is_fd and not self.fd:
+            c.rejected["fd_on_classic"] += 1
+        elif n != lay.length or msg.dlc != lay.length:
+            c.rejected["dlc"] += 1
+        else:
+            c.nodes[lay.sender] = msg.data[1]
+
+    def on_error(self, exc: Exception) -> None:
+        log.error("bus monitor %s: %r", self.spec.name, exc)
+
+    def stop(self) -> None:
+        """Nothing to release; harmless twice."""
+
+    def health(self, now_ns: int) -> BusHealth:
+        return self.counters.snapshot(now_ns)
+
+
+def drivers_for(spec: wire.BusSpec, sink: Sink, fd: bool = False, stale_periods: int = 10) -> list[Driver]:
+    """The device drivers for one bus of a :class:`~drivers.wire.WireMap`."""
+    if spec.kind == "arm":
+        return [FtDriver(spec.arm, sink, fd, stale_periods),
+                JointDriver(spec.arm, spec.joints, sink, fd, stale_periods),
+                TorqueCommandDriver(spec.arm, spec.joints, sink, fd, stale_periods)]
+    return [ImuDriver(sink, fd, stale_periods), ThrusterCommandDriver(sink, fd, stale_periods)]
+
+
+def listeners_for(spec: wire.BusSpec, sink: Sink, fd: bool = False,
+                  stale_periods: int = 10) -> tuple[BusMonitor, list[Driver]]:
+    """The monitor and the drivers of one bus, ready for ``can.Notifier(bus, [monitor, *drivers])``."""
+    drivers = drivers_for(spec, sink, fd, stale_periods)
+    owned = set().union(*(d.ids for d in drivers))
+    return BusMonitor(spec, owned, fd), drivers

@@ -1,0 +1,100 @@
+"""The one payload codec of the zenoh side: samples and health as UTF-8 JSON objects.
+
+Format: ``{"type": "<dataclass name>", "v": 1, <field>: <value>, ...}``; tuples become JSON
+arrays, floats are written with Python's shortest round-tripping repr, so ``decode(encode(x)) ==
+x`` for every sample and health dataclass. Decoding is safe: ``json.loads`` only, the type is
+looked up in a fixed table, every field is checked for presence and type; nothing is evaluated
+or unpickled. Non-finite floats (never produced by the drivers) are refused.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+
+from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
+                             WrenchSample)
+
+VERSION = 1
+ENCODING = "application/json"
+TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
+                                                   ThrusterCommand, DeviceHealth, BusHealth)}
+
+
+class CodecError(ValueError):
+    """A payload that is not a valid encoded sample."""
+
+
+def encode(sample) -> bytes:
+    name = type(sample).__name__
+    if TYPES.get(name) is not type(sample):
+        raise TypeError(f"cannot encode {name}")
+    obj = {"type": name, "v": VERSION}
+    for f in dataclasses.fields(sample):
+        obj[f.name] = getattr(sample, f.name)
+    try:
+        return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+    except ValueError as exc:
+        raise CodecError(f"{name}: {exc}") from None
+
+
+_HINTS: dict[type, dict[str, object]] = {t: typing.get_type_hints(t) for t in TYPES.values()}
+
+
+def _convert(value, hint, where: str):
+    origin = typing.get_origin(hint)
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise CodecError(f"{where}: expected a number")
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise CodecError(f"{where}: expected an integer")
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise CodecError(f"{where}: expected true/false")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise CodecError(f"{where}: expected a string")
+        return value
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, list):
+            raise CodecError(f"{where}: expected an array")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], where) for v in value)
+        if len(value) != len(args):
+            raise CodecError(f"{where}: expected {len(args)} items")
+        return tuple(_convert(v, a, where) for v, a in zip(value, args))
+    if origin in (typing.Union, types.UnionType):
+        raise CodecError(f"{where}: unsupported field type")
+    raise CodecError(f"{where}: unsupported field type {hint!r}")
+
+
+def decode(payload: bytes | bytearray | memoryview | str):
+    """Bytes -> the sample or health dataclass; :class:`CodecError` on anything else."""
+    try:
+        obj = json.loads(bytes(payload) if not isinstance(payload, str) else payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise CodecError(f"not JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise CodecError("not a JSON object")
+    cls = TYPES.get(obj.get("type"))  # type: ignore[arg-type]
+    if cls is None:
+        raise CodecError(f"unknown type {obj.get('type')!r}")
+    if obj.get("v") != VERSION:
+        raise CodecError(f"unsupported version {obj.get('v')!r}")
+    hints = _HINTS[cls]
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name in obj:
+            kwargs[f.name] = _convert(obj[f.name], hints[f.name], f"{cls.__name__}.{f.name}")
+        elif f.default is dataclasses.MISSING:
+            raise CodecError(f"{cls.__name__}: missing field {f.name!r}")
+    extra = set(obj) - {"type", "v"} - set(hints)
+    if extra:
+        raise CodecError(f"{cls.__name__}: unknown fields {sorted(extra)}")
+    return cls(**kwargs)

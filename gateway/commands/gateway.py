@@ -1,0 +1,78 @@
+"""``bsc gateway``: run the CAN drivers of a robot and publish samples and health over zenoh.
+
+One CAN bus per arm plus the spacecraft bus. ``--channel`` either names every bus
+(``--channel arm0=can0 --channel arm1=can1 --channel spacecraft=can2``) or gives one prefix
+used as ``<prefix>-<bus>`` (``--channel bsc`` -> ``bsc-arm0``, ``bsc-arm1``, ``bsc-spacecraft``;
+the simulator's firmware uses the same rule, ``drivers.wire.channel_name``).
+"""
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    can_g = parser.add_argument_group("CAN")
+    can_g.add_argument("--interface", "-i", required=True, help="python-can interface, e.g. socketcan, virtual")
+    can_g.add_argument("--channel", "-c", action="append", required=True, metavar="PREFIX|BUS=CHANNEL",
+                       help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
+    can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD (same frames, bit-rate switch)")
+    parser.add_argument("--robot", default=None, metavar="NAME|FILE", help="robot description (default paper_robot)")
+    parser.add_argument("--health-period", type=float, default=0.5, metavar="S", help="health publication period")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    from gateway.zenoh_config import add_zenoh_arguments
+
+    add_zenoh_arguments(parser)
+
+
+def channels(spec: list[str], buses: list[str]) -> dict[str, str]:
+    from drivers.wire import channel_name
+    from gateway.cli import UserError
+
+    pairs = [c for c in spec if "=" in c]
+    if pairs and len(pairs) != len(spec):
+        raise UserError("--channel: give either one prefix or BUS=CHANNEL for every bus")
+    if not pairs:
+        if len(spec) != 1:
+            raise UserError("--channel: give one prefix, or BUS=CHANNEL pairs")
+        return {b: channel_name(spec[0], b) for b in buses}
+    out = dict(c.split("=", 1) for c in pairs)
+    unknown, missing = set(out) - set(buses), set(buses) - set(out)
+    if unknown or missing:
+        raise UserError(f"--channel: buses are {', '.join(buses)}"
+                        + (f"; unknown {', '.join(sorted(unknown))}" if unknown else "")
+                        + (f"; missing {', '.join(sorted(missing))}" if missing else ""))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    import contextlib
+    import signal
+    import threading
+
+    import can
+    import zenoh
+
+    import robot_description
+    from drivers.wire import WireMap
+    from gateway.bridge import GatewayService
+    from gateway.zenoh_config import config_from_args
+
+    wm = WireMap.from_robot(robot_description.load(args.robot))
+    chans = channels(args.channel, list(wm.buses))
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with contextlib.ExitStack() as stack:
+        buses = {}
+        for name, ch in chans.items():
+            kw = {"fd": True} if args.fd else {}
+            buses[name] = stack.enter_context(can.Bus(interface=args.interface, channel=ch, ignore_config=True, **kw))
+        session = stack.enter_context(zenoh.open(config_from_args(args)))
+        gw = stack.enter_context(GatewayService(wm, buses, session, fd=args.fd, health_period_s=args.health_period))
+        print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items()), flush=True)
+        try:
+            gw.run(stop, args.duration)
+        except KeyboardInterrupt:
+            pass
+        print(f"bsc gateway: published {gw.published} messages", flush=True)
+    return 0

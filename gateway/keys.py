@@ -1,0 +1,105 @@
+"""Every zenoh key expression of bsc, in one place.
+
+Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
+
+    bsc/<robot>/sensors/wrench/<arm>              WrenchSample      F/T sensor of arm <arm>
+    bsc/<robot>/sensors/joint/<arm>/<joint>       JointSample       joint drive report
+    bsc/<robot>/sensors/imu                       ImuSample         spacecraft IMU
+    bsc/<robot>/commands/torque/<arm>/<joint>     TorqueCommand     commanded motor torque
+    bsc/<robot>/commands/thrusters                ThrusterCommand   commanded thruster wrench
+    bsc/<robot>/health/bus/<bus>                  BusHealth         per CAN bus
+    bsc/<robot>/health/device/<device...>         DeviceHealth      per device (<arm>, <arm>/<joint>,
+                                                                    <arm>/torque_cmd, imu, thrusters)
+
+Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sensor
+sample, ``ROOT/**`` for everything.
+"""
+from __future__ import annotations
+
+from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
+                             WrenchSample)
+
+ROOT = "bsc"
+_FORBIDDEN = set("*$?#/ ")
+
+
+class KeyExprError(ValueError):
+    """A name that cannot be a key expression chunk."""
+
+
+def _chunk(name: str) -> str:
+    if not name or _FORBIDDEN & set(name):
+        raise KeyExprError(f"{name!r} cannot be a key expression chunk (empty, or contains one of '*$?#/ ')")
+    return name
+
+
+def _path(name: str) -> str:
+    return "/".join(_chunk(c) for c in name.split("/"))
+
+
+def robot_root(robot: str) -> str:
+    return f"{ROOT}/{_chunk(robot)}"
+
+
+def wrench(robot: str, arm: str) -> str:
+    return f"{robot_root(robot)}/sensors/wrench/{_chunk(arm)}"
+
+
+def joint(robot: str, device: str) -> str:
+    """``device`` is ``<arm>/<joint>``."""
+    return f"{robot_root(robot)}/sensors/joint/{_path(device)}"
+
+
+def imu(robot: str) -> str:
+    return f"{robot_root(robot)}/sensors/imu"
+
+
+def torque_command(robot: str, device: str) -> str:
+    return f"{robot_root(robot)}/commands/torque/{_path(device)}"
+
+
+def thruster_command(robot: str) -> str:
+    return f"{robot_root(robot)}/commands/thrusters"
+
+
+def bus_health(robot: str, bus: str) -> str:
+    return f"{robot_root(robot)}/health/bus/{_chunk(bus)}"
+
+
+def device_health(robot: str, device: str) -> str:
+    return f"{robot_root(robot)}/health/device/{_path(device)}"
+
+
+def sensors(robot: str) -> str:
+    return f"{robot_root(robot)}/sensors/**"
+
+
+def commands(robot: str) -> str:
+    return f"{robot_root(robot)}/commands/**"
+
+
+def health(robot: str) -> str:
+    return f"{robot_root(robot)}/health/**"
+
+
+def everything(robot: str) -> str:
+    return f"{robot_root(robot)}/**"
+
+
+def for_sample(robot: str, sample) -> str:
+    """The key a decoded sample or health report is published under."""
+    if isinstance(sample, WrenchSample):
+        return wrench(robot, sample.device)
+    if isinstance(sample, JointSample):
+        return joint(robot, sample.device)
+    if isinstance(sample, ImuSample):
+        return imu(robot)
+    if isinstance(sample, TorqueCommand):
+        return torque_command(robot, sample.device)
+    if isinstance(sample, ThrusterCommand):
+        return thruster_command(robot)
+    if isinstance(sample, BusHealth):
+        return bus_health(robot, sample.bus)
+    if isinstance(sample, DeviceHealth):
+        return device_health(robot, sample.device)
+    raise TypeError(f"no key for {type(sample).__name__}")

@@ -1,0 +1,145 @@
+"""The gateway service over virtual CAN and loopback zenoh, and ``bsc gateway`` as a subprocess.
+
+zenoh: explicit loopback endpoints, multicast scouting off (gateway.zenoh_config)."""
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+import zenoh
+
+import robot_description
+from drivers import frames, wire
+from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, WrenchSample
+from gateway import codec, keys
+from gateway.bridge import GatewayService
+from gateway.zenoh_config import make_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Collector:
+    def __init__(self, want):
+        self.want, self.got, self.lock, self.done = want, [], threading.Lock(), threading.Event()
+
+    def __call__(self, sample):
+        obj = codec.decode(sample.payload.to_bytes())
+        with self.lock:
+            self.got.append((str(sample.key_expr), obj))
+            if self.want(self.got):
+                self.done.set()
+
+
+@pytest.fixture
+def sessions():
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    with zenoh.open(make_config(listen=[ep])) as pub, zenoh.open(make_config(connect=[ep])) as sub:
+        yield pub, sub
+
+
+def test_bridge_publishes_samples_and_health(sessions):
+    pub_s, sub_s = sessions
+    wm = wire.WireMap.from_robot(robot_description.load("paper_robot"))
+    prefix = f"bsc-bridge-{uuid.uuid4().hex}"
+    arm = wm.buses["arm0"]
+    j0 = f"arm0/{arm.joints[0]}"
+
+    def want(got):
+        ks = [k for k, _ in got]
+        return (keys.wrench("paper_robot", "arm0") in ks and keys.imu("paper_robot") in ks
+                and keys.joint("paper_robot", j0) in ks
+                and any(k.startswith("bsc/paper_robot/health/bus/") for k in ks))
+
+    col = Collector(want)
+    sub = sub_s.declare_subscriber(keys.everything("paper_robot"), col)
+    opened = {}
+    try:
+        for name in wm.buses:
+            opened[name] = can.Bus(interface="virtual", channel=wire.channel_name(prefix, name),
+                                   receive_own_messages=False, ignore_config=True)
+        tx = {name: can.Bus(interface="virtual", channel=wire.channel_name(prefix, name),
+                            receive_own_messages=False, ignore_config=True) for name in wm.buses}
+        try:
+            with GatewayService(wm, opened, pub_s, health_period_s=0.05) as gw:
+                stop = threading.Event()
+                runner = threading.Thread(target=gw.run, args=(stop,))
+                runner.start()
+                try:
+                    for c in range(200):
+                        for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
+                            tx["arm0"].send(m)
+                        tx["arm0"].send(frames.encode_joint(JointSample(j0, 0, c, 0.5, 0.0), 0))
+                        for m in frames.encode_imu(ImuSample(0, c, (1.0, 0.0, 0.0, 0.0), (0.0,) * 3, (0.0, 0.0, 0.01))):
+                            tx["spacecraft"].send(m)
+                        if col.done.wait(0.02):
+                            break
+                    assert col.done.wait(10.0), [k for k, _ in col.got][:20]
+                finally:
+                    stop.set()
+                    runner.join(10.0)
+        finally:
+            for b in tx.values():
+                b.shutdown()
+    finally:
+        for b in opened.values():
+            b.shutdown()
+        sub.undeclare()
+    by_key = {}
+    for k, obj in col.got:
+        by_key.setdefault(k, []).append(obj)
+    w = by_key[keys.wrench("paper_robot", "arm0")][0]
+    assert isinstance(w, WrenchSample) and w.force_n == (1.0, 2.0, 3.0)
+    assert isinstance(by_key[keys.imu("paper_robot")][0], ImuSample)
+    healths = [o for k, objs in by_key.items() if "/health/" in k for o in objs]
+    assert any(isinstance(h, BusHealth) for h in healths) and any(isinstance(h, DeviceHealth) for h in healths)
+
+
+def test_service_requires_every_bus_and_closes_twice(sessions):
+    wm = wire.WireMap.from_robot(robot_description.load("paper_robot"))
+    from gateway.bridge import GatewayError
+    with pytest.raises(GatewayError):
+        GatewayService(wm, {}, sessions[0])
+    prefix = f"bsc-close-{uuid.uuid4().hex}"
+    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), ignore_config=True) for n in wm.buses}
+    try:
+        gw = GatewayService(wm, buses, sessions[0]).start()
+        gw.close()
+        gw.close()
+    finally:
+        for b in buses.values():
+            b.shutdown()
+
+
+def test_gateway_command_publishes_health_over_loopback():
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway.cli", "gateway", "--interface", "virtual", "--channel", "bsc-cli",
+         "--robot", "paper_robot", "--listen", ep, "--health-period", "0.1", "--duration", "20"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        col = Collector(lambda got: any(isinstance(o, BusHealth) for _, o in got))
+        with zenoh.open(make_config(connect=[ep])) as s:
+            sub = s.declare_subscriber(keys.health("paper_robot"), col)
+            ok = col.done.wait(30.0)
+            sub.undeclare()
+        assert ok, proc.stderr.read() if proc.poll() is not None else "no health received"
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=30)
+    assert "bsc gateway: robot paper_robot" in out, err
