@@ -133,9 +133,7 @@ class Dynamics:
             # the joint with the largest excess breaks away, in the direction it is pushed
             k = np.argmax(np.abs(f_S) - fr.static_nm[S])
             i = S[k]
-            slip_dir[i] = -np.sign(f_S[k]) if vj[i] == 0 else np.sign(vj[i])
-            if slip_dir[i] == 0:
-                slip_dir[i] = -np.sign(f_S[k])
+            slip_dir[i] = np.sign(vj[i]) if vj[i] != 0 else -np.sign(f_S[k])
             S = np.delete(S, k)
         else:  # pragma: no cover - the loop removes one joint per pass
             raise RuntimeError("friction solve did not converge")

@@ -110,6 +110,7 @@ class Simulation:
         self.demand = np.zeros(6)
         self.u_cmd = np.zeros(self.layout.n)
         self.wrench_cmd = np.zeros(6)
+        self.ee = self.ee_des = np.zeros((len(r.arms), 3))   # end effector and its reference, inertial
         self.trace = Trace.allocate(self)
 
     # ------------------------------------------------------------------------------------------
@@ -166,7 +167,7 @@ class Simulation:
             qm[7:] = angle
             vm = v.copy()
             vm[6:] = rate
-            self.tau_cmd, self._x, self._xd = self.ctrl.joint_torques(t, qm, vm)
+            self.tau_cmd, self.ee, self.ee_des = self.ctrl.joint_torques(t, qm, vm)
             torque_cmd = self.tau_cmd
         if k % self.base_every == 0:
             M = pin.XYZQUATToSE3(q[:7])
@@ -174,7 +175,6 @@ class Simulation:
             allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
             self.u_cmd = self.alloc.allocate(self.demand, allowed)
             self.wrench_cmd = self.alloc.B @ self.u_cmd
-            self._allowed = allowed
             thruster_cmd = self.wrench_cmd
         valves = self.thr_err.valves(self.pwpfm.step(self.u_cmd / self.layout.max_n))
         thrust = self.thr_err.thrust(valves)

@@ -97,8 +97,8 @@ class Trace:
         A["ft_meas"][k] = ft_meas
         A["enc_angle"][k] = angle
         A["enc_rate"][k] = rate
-        A["ee"][k] = sim._x
-        A["ee_des"][k] = sim._xd
+        A["ee"][k] = sim.ee
+        A["ee_des"][k] = sim.ee_des
         self.n = k + 1
 
     def record_imu(self, sim, quat, rate, acc, rate_true, acc_true) -> None:
