@@ -2,7 +2,7 @@
 
 Format: ``{"type": "<dataclass name>", "v": 1, <field>: <value>, ...}``; tuples become JSON
 arrays, floats are written with Python's shortest round-tripping repr, so ``decode(encode(x)) ==
-x`` for every sample and health dataclass. Decoding is safe: ``json.loads`` only, the type is
+x`` for every sample, health, effort and alert dataclass. Decoding is safe: ``json.loads`` only, the type is
 looked up in a fixed table, every field is checked for presence and type; nothing is evaluated
 or unpickled. Non-finite floats (never produced by the drivers) are refused.
 """
@@ -15,11 +15,13 @@ import typing
 
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              WrenchSample)
+from gateway.efforts import Alert, JointEfforts, ThrusterEffort
 
 VERSION = 1
 ENCODING = "application/json"
 TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
-                                                   ThrusterCommand, DeviceHealth, BusHealth)}
+                                                   ThrusterCommand, DeviceHealth, BusHealth, JointEfforts,
+                                                   ThrusterEffort, Alert)}
 
 
 class CodecError(ValueError):

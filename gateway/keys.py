@@ -10,6 +10,9 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/health/bus/<bus>                  BusHealth         per CAN bus
     bsc/<robot>/health/device/<device...>         DeviceHealth      per device (<arm>, <arm>/<joint>,
                                                                     <arm>/torque_cmd, imu, thrusters)
+    bsc/<robot>/efforts/joints/<arm>              JointEfforts      estimated joint torques of an arm
+    bsc/<robot>/efforts/thrusters                 ThrusterEffort    estimated thruster wrench
+    bsc/<robot>/alerts                            Alert             monitor / analyze alerts
 
 Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sensor
 sample, ``ROOT/**`` for everything.
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              WrenchSample)
+from gateway.efforts import Alert, JointEfforts, ThrusterEffort
 
 ROOT = "bsc"
 _FORBIDDEN = set("*$?#/ ")
@@ -70,6 +74,22 @@ def device_health(robot: str, device: str) -> str:
     return f"{robot_root(robot)}/health/device/{_path(device)}"
 
 
+def joint_efforts(robot: str, arm: str) -> str:
+    return f"{robot_root(robot)}/efforts/joints/{_chunk(arm)}"
+
+
+def thruster_effort(robot: str) -> str:
+    return f"{robot_root(robot)}/efforts/thrusters"
+
+
+def alerts(robot: str) -> str:
+    return f"{robot_root(robot)}/alerts"
+
+
+def efforts(robot: str) -> str:
+    return f"{robot_root(robot)}/efforts/**"
+
+
 def sensors(robot: str) -> str:
     return f"{robot_root(robot)}/sensors/**"
 
@@ -102,4 +122,10 @@ def for_sample(robot: str, sample) -> str:
         return bus_health(robot, sample.bus)
     if isinstance(sample, DeviceHealth):
         return device_health(robot, sample.device)
+    if isinstance(sample, JointEfforts):
+        return joint_efforts(robot, sample.arm)
+    if isinstance(sample, ThrusterEffort):
+        return thruster_effort(robot)
+    if isinstance(sample, Alert):
+        return alerts(robot)
     raise TypeError(f"no key for {type(sample).__name__}")

@@ -7,6 +7,7 @@ from hypothesis import given, settings, strategies as st
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              WrenchSample)
 from gateway import codec, keys
+from gateway.efforts import Alert, JointEfforts, ThrusterEffort
 
 fl = st.floats(allow_nan=False, allow_infinity=False)
 v3 = st.tuples(fl, fl, fl)
@@ -23,6 +24,13 @@ SAMPLES = st.one_of(
     st.builds(DeviceHealth, name, name, i64, st.integers(0), st.integers(0), st.integers(0), reasons, i64, st.booleans(),
               st.integers(0), st.integers(0)),
     st.builds(BusHealth, name, i64, st.integers(0), reasons, fl, reasons),
+    st.builds(JointEfforts, name, i64, st.lists(name, max_size=3).map(tuple), st.lists(fl, max_size=3).map(tuple),
+              st.lists(fl, max_size=3).map(tuple), st.lists(fl, max_size=3).map(tuple), i64,
+              st.lists(fl, max_size=3).map(tuple), st.booleans(), st.lists(name, max_size=3).map(tuple)),
+    st.builds(ThrusterEffort, i64, v3, v3, v3, v3, i64, st.integers(0, 2**32 - 1), st.booleans(),
+              st.lists(name, max_size=3).map(tuple)),
+    st.builds(Alert, name, name, name, name, name, name, i64, i64, st.text(max_size=40),
+              st.lists(st.tuples(name, fl), max_size=3).map(tuple)),
 )
 
 
@@ -54,5 +62,9 @@ def test_keys():
     assert keys.wrench("paper_robot", "arm0") == "bsc/paper_robot/sensors/wrench/arm0"
     assert keys.for_sample("r", JointSample("arm0/j1", 0, 0, 0.0, 0.0)) == "bsc/r/sensors/joint/arm0/j1"
     assert keys.device_health("r", "arm0/torque_cmd") == "bsc/r/health/device/arm0/torque_cmd"
+    assert keys.for_sample("r", ThrusterEffort(0, (0.0,) * 3, (0.0,) * 3, (0.0,) * 3, (0.0,) * 3, 0, 0, True)) \
+        == "bsc/r/efforts/thrusters"
+    assert keys.joint_efforts("r", "arm1") == "bsc/r/efforts/joints/arm1"
+    assert keys.alerts("r") == "bsc/r/alerts"
     with pytest.raises(ValueError):
         keys.wrench("r", "a*")
