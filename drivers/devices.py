@@ -238,6 +238,22 @@ class ThrusterCommandDriver(_MultiFrameDriver):
         return frames.decode_thruster(parts, t_ns)
 
 
+class ValveCommandDriver(Driver):
+    """The 1 kHz valve commands of the PWPFM modulator (``THRUSTER_VALVE_CMD``) -> :class:`ValveCommand`."""
+
+    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
+        super().__init__(wire.SPACECRAFT_BUS, sink, fd)
+        self.device = "valves"
+        self.dev = DeviceCounters("valves", self.bus, _period_ns("spacecraft", wire.VALVE_CMD_ID), 0, stale_periods)
+        self._route[wire.VALVE_CMD_ID] = (wire.layouts("spacecraft")[wire.VALVE_CMD_ID], self.dev, self._frame)
+
+    def _frame(self, msg: can.Message, data: bytes) -> None:
+        s = frames.decode_valves(data, _t_ns(msg))
+        if self.dev.sequence(s.counter):
+            self.dev.accept(s.t_ns, False, 0)
+            self.sink(s)
+
+
 class BusMonitor(can.Listener):
     """Counts every frame of one bus, measures its worst-case load, reads heartbeats, and counts
     the frames no driver owns. ``owned`` = the ids the drivers on this bus handle."""
@@ -296,7 +312,8 @@ def drivers_for(spec: wire.BusSpec, sink: Sink, fd: bool = False, stale_periods:
         return [FtDriver(spec.arm, sink, fd, stale_periods),
                 JointDriver(spec.arm, spec.joints, sink, fd, stale_periods),
                 TorqueCommandDriver(spec.arm, spec.joints, sink, fd, stale_periods)]
-    return [ImuDriver(sink, fd, stale_periods), ThrusterCommandDriver(sink, fd, stale_periods)]
+    return [ImuDriver(sink, fd, stale_periods), ThrusterCommandDriver(sink, fd, stale_periods),
+            ValveCommandDriver(sink, fd, stale_periods)]
 
 
 def listeners_for(spec: wire.BusSpec, sink: Sink, fd: bool = False,

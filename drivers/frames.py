@@ -22,6 +22,7 @@ Byte maps (``ctr`` = sample counter mod 256, identical in every frame of one sam
     0x180         THRUSTER_CMD_FORCE   7    ctr   Fx      ..  Fy      ..  Fz  ..      0.05 N
     0x181         THRUSTER_CMD_MOMENT  7    ctr   Mx      ..  My      ..  Mz  ..      0.05 N m
     0x182         THRUSTER_CMD_VALVES  5    ctr   valves u32
+    0x183         THRUSTER_VALVE_CMD   5    ctr   valves u32                          1 kHz
     0x405         IMU_SAMPLE_TIME      5    ctr   time_us u32
     0x411         IMU_STATUS           5    ctr   status u32
     0x421         IMU_QUAT_WX          7    ctr   w i24           x i24               2^-22
@@ -37,7 +38,7 @@ from typing import Mapping, Sequence
 import can
 
 from drivers import wire
-from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 
 
 class DriverError(Exception):
@@ -60,6 +61,7 @@ JOINT_STATE = _ARM[wire.JOINT_STATE_BASE]          # every slot has this layout
 TORQUE_CMD = _ARM[wire.TORQUE_CMD_BASE]
 HEARTBEAT = _ARM[wire.HEARTBEAT_BASE + 1]
 THR_F, THR_M, THR_V = _SC[wire.THRUSTER_FORCE_ID], _SC[wire.THRUSTER_MOMENT_ID], _SC[wire.THRUSTER_VALVES_ID]
+VALVE_CMD = _SC[wire.VALVE_CMD_ID]
 IMU_T, IMU_S = _SC[wire.IMU_TIME_ID], _SC[wire.IMU_STATUS_ID]
 IMU_QA, IMU_QB, IMU_W, IMU_A = (_SC[wire.IMU_QUAT_WX_ID], _SC[wire.IMU_QUAT_YZ_ID], _SC[wire.IMU_RATE_ID],
                                 _SC[wire.IMU_ACCEL_ID])
@@ -184,6 +186,17 @@ def decode_thruster(parts: Mapping[int, bytes], t_ns: int) -> ThrusterCommand:
     return ThrusterCommand(t_ns, c0, tuple(f), tuple(m), valves=valves, saturated=s0 or s1)
 
 
+def decode_valves(data: bytes, t_ns: int) -> ValveCommand:
+    """``THRUSTER_VALVE_CMD`` -> :class:`ValveCommand`.
+
+    ::
+
+        0x183  | ctr u8 | valves u32 |      bit i = thruster i commanded open, 1 kHz
+    """
+    (c, valves), _ = decode_fields(VALVE_CMD, data)
+    return ValveCommand(t_ns, c, valves)
+
+
 # --- encoders: samples -> payloads -----------------------------------------------------------
 
 def _q(value: float, scale: float, lim: int) -> tuple[int, bool]:
@@ -287,6 +300,11 @@ def thruster_payloads(sample: ThrusterCommand) -> list[tuple[int, bytes]]:
     return [(wire.THRUSTER_FORCE_ID, f), (wire.THRUSTER_MOMENT_ID, m), (wire.THRUSTER_VALVES_ID, v)]
 
 
+def valves_payload(sample: ValveCommand) -> tuple[int, bytes]:
+    """``(0x183, THRUSTER_VALVE_CMD)``."""
+    return wire.VALVE_CMD_ID, VALVE_CMD.pack_raw((sample.counter & 0xFF, _u(sample.valves, 32, "valve mask")))
+
+
 def heartbeat_payload(node_id: int, counter: int, state: int = 0x05) -> tuple[int, bytes]:
     """``(0x700 + node_id, | ctr u8 | state u8 |)``; state 0x05 = operational."""
     return wire.HEARTBEAT_BASE + _u(node_id, 7, "node id"), HEARTBEAT.pack_raw((counter & 0xFF, _u(state, 8, "state")))
@@ -319,6 +337,10 @@ def encode_imu(sample: ImuSample, time_us: int | None = None, fd: bool = False) 
 
 def encode_thruster(sample: ThrusterCommand, fd: bool = False) -> list[can.Message]:
     return to_messages(thruster_payloads(sample), sample.t_ns, fd)
+
+
+def encode_valves(sample: ValveCommand, fd: bool = False) -> can.Message:
+    return to_messages([valves_payload(sample)], sample.t_ns, fd)[0]
 
 
 def encode_heartbeat(node_id: int, counter: int, state: int = 0x05, fd: bool = False) -> can.Message:

@@ -91,7 +91,18 @@ class ThrusterCommand:
     saturated: bool = False
 
 
-Sample = WrenchSample | ImuSample | JointSample | TorqueCommand | ThrusterCommand
+@dataclass(frozen=True, slots=True)
+class ValveCommand:
+    """The valve commands of one millisecond from the PWPFM modulator (``THRUSTER_VALVE_CMD``):
+    bit i of ``valves`` = thruster i of the configured layout commanded open. What the valves
+    actually deliver (gain, misalignment, a stuck valve) is what the estimator measures."""
+
+    t_ns: int
+    counter: int
+    valves: int
+
+
+Sample = WrenchSample | ImuSample | JointSample | TorqueCommand | ThrusterCommand | ValveCommand
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,11 +12,13 @@ import sys
 # name -> (module in gateway.commands, one-line help). Imported only when chosen.
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: the paper's capture scenario end to end, with report and figures"),
-    "gateway": ("gateway", "run the CAN drivers of a robot and publish samples and health over zenoh"),
+    "gateway": ("gateway", "drivers and estimator of a robot: samples, efforts and health over zenoh"),
     "budget": ("budget", "print the worst-case CAN bus load per bus of a robot at nominal rates"),
     "sim": ("sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
     "info": ("info", "summarise an MCAP log: channels, rates, gaps, metadata, complete or truncated"),
     "recover": ("recover", "salvage a truncated MCAP log (crash, kill, full disk) into a valid file"),
+    "record": ("record", "record a session to MCAP: raw CAN frames per bus and every zenoh sample"),
+    "replay": ("replay", "replay a log offline through drivers + estimator, or live onto CAN or zenoh"),
 }
 
 

@@ -14,13 +14,13 @@ import types
 import typing
 
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
-                             WrenchSample)
+                             ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
 
 VERSION = 1
 ENCODING = "application/json"
 TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
-                                                   ThrusterCommand, DeviceHealth, BusHealth, JointEfforts,
+                                                   ThrusterCommand, ValveCommand, DeviceHealth, BusHealth, JointEfforts,
                                                    ThrusterEffort, Alert)}
 
 

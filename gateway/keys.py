@@ -7,6 +7,7 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/sensors/imu                       ImuSample         spacecraft IMU
     bsc/<robot>/commands/torque/<arm>/<joint>     TorqueCommand     commanded motor torque
     bsc/<robot>/commands/thrusters                ThrusterCommand   commanded thruster wrench
+    bsc/<robot>/commands/valves                   ValveCommand      valve commands, 1 kHz
     bsc/<robot>/health/bus/<bus>                  BusHealth         per CAN bus
     bsc/<robot>/health/device/<device...>         DeviceHealth      per device (<arm>, <arm>/<joint>,
                                                                     <arm>/torque_cmd, imu, thrusters)
@@ -20,7 +21,7 @@ sample, ``ROOT/**`` for everything.
 from __future__ import annotations
 
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
-                             WrenchSample)
+                             ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
 
 ROOT = "bsc"
@@ -64,6 +65,10 @@ def torque_command(robot: str, device: str) -> str:
 
 def thruster_command(robot: str) -> str:
     return f"{robot_root(robot)}/commands/thrusters"
+
+
+def valve_command(robot: str) -> str:
+    return f"{robot_root(robot)}/commands/valves"
 
 
 def bus_health(robot: str, bus: str) -> str:
@@ -118,6 +123,8 @@ def for_sample(robot: str, sample) -> str:
         return torque_command(robot, sample.device)
     if isinstance(sample, ThrusterCommand):
         return thruster_command(robot)
+    if isinstance(sample, ValveCommand):
+        return valve_command(robot)
     if isinstance(sample, BusHealth):
         return bus_health(robot, sample.bus)
     if isinstance(sample, DeviceHealth):

@@ -1,4 +1,8 @@
-"""``bsc gateway``: run the CAN drivers of a robot and publish samples and health over zenoh.
+"""``bsc gateway``: drivers and estimator of a robot: samples, efforts and health over zenoh.
+
+Efforts: ``bsc/<robot>/efforts/joints/<arm>`` and ``bsc/<robot>/efforts/thrusters``
+(gateway/efforts.py; sync policy in gateway/estimator/live.py). ``--record FILE.mcap`` also
+writes the session (raw frames in the order the estimator saw them, samples, efforts, health).
 
 One CAN bus per arm plus the spacecraft bus. ``--channel`` either names every bus
 (``--channel arm0=can0 --channel arm1=can1 --channel spacecraft=can2``) or gives one prefix
@@ -8,6 +12,7 @@ the simulator's firmware uses the same rule, ``drivers.wire.channel_name``).
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,6 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
     can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD (same frames, bit-rate switch)")
     parser.add_argument("--robot", default=None, metavar="NAME|FILE", help="robot description (default paper_robot)")
+    parser.add_argument("--model", default=None, metavar="FILE.urdf",
+                        help="the gateway's model of the robot when it differs from --robot (default: --robot)")
+    parser.add_argument("--thrusters", default=None, metavar="NAME|FILE",
+                        help="nominal thruster layout (default ring18, 100 N; robot_description/thrusters.py)")
+    parser.add_argument("--record", type=Path, default=None, metavar="FILE.mcap", help="record the session")
     parser.add_argument("--health-period", type=float, default=0.5, metavar="S", help="health publication period")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     from gateway.zenoh_config import add_zenoh_arguments
@@ -57,7 +67,12 @@ def run(args: argparse.Namespace) -> int:
     from gateway.bridge import GatewayService
     from gateway.zenoh_config import config_from_args
 
-    wm = WireMap.from_robot(robot_description.load(args.robot))
+    from robot_description.thrusters import ThrusterLayout
+
+    robot = robot_description.load(args.robot)
+    model = robot_description.load(args.model) if args.model else None
+    layout = ThrusterLayout.load(args.thrusters)
+    wm = WireMap.from_robot(robot)
     chans = channels(args.channel, list(wm.buses))
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
@@ -68,11 +83,20 @@ def run(args: argparse.Namespace) -> int:
             kw = {"fd": True} if args.fd else {}
             buses[name] = stack.enter_context(can.Bus(interface=args.interface, channel=ch, ignore_config=True, **kw))
         session = stack.enter_context(zenoh.open(config_from_args(args)))
-        gw = stack.enter_context(GatewayService(wm, buses, session, fd=args.fd, health_period_s=args.health_period))
+        rec = None
+        if args.record is not None:
+            from gateway.recorder import Recorder
+            from gateway.replay import session_context
+
+            rec = stack.enter_context(Recorder(args.record))
+            rec.add_session_context(**session_context(robot, fd=args.fd))
+        gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
+                                                model_robot=model, layout=layout, record=rec))
         print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items()), flush=True)
         try:
             gw.run(stop, args.duration)
         except KeyboardInterrupt:
             pass
-        print(f"bsc gateway: published {gw.published} messages", flush=True)
+        print(f"bsc gateway: published {gw.published} messages; " +
+              ", ".join(f"{k} {v}" for k, v in gw.pipeline.stats.items()), flush=True)
     return 0

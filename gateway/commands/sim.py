@@ -1,10 +1,15 @@
 """``bsc sim``: run the simulated space robot in lockstep and write its truth trace and plots.
 
     bsc sim --scenario capture --duration 8 --out sim-out
+    bsc sim --interface virtual --channel bsc --realtime --drop-rate 0.01
+    bsc sim -i udp_multicast -c arm0=239.74.163.1 -c arm1=239.74.163.2 -c spacecraft=239.74.163.3
 
 Writes ``truth.npz`` (docs/truth-trace.md), ``summary.json`` and PNG figures like the paper's:
 trajectories, end-effector error with and without friction, commanded vs actual joint torques
-and thruster wrench.
+and thruster wrench. With ``--interface`` the robot's sensor firmware also puts every frame on
+the robot's CAN buses (any python-can interface; channels as ``bsc gateway`` takes them), in
+lockstep or paced to the wall clock (``--realtime``), with optional fault injection
+(docs/firmware.md). A scenario's ``[faults]`` table sets the same knobs; flags override it.
 """
 from __future__ import annotations
 
@@ -26,6 +31,66 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-compare", action="store_true",
                    help="skip the friction-free comparison run (used by the end-effector error plot)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    can_g = p.add_argument_group("CAN (the sensor firmware; without --interface nothing is sent)")
+    can_g.add_argument("--interface", "-i", metavar="NAME",
+                       help="python-can interface: virtual, udp_multicast, socketcan, ...")
+    can_g.add_argument("--channel", "-c", action="append", metavar="PREFIX|BUS=CHANNEL",
+                       help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable; "
+                            "default prefix bsc)")
+    can_g.add_argument("--fd", action="store_true", help="send CAN FD frames (same payloads, bit-rate switch)")
+    can_g.add_argument("--realtime", action="store_true",
+                       help="pace each 1 ms step to the wall clock and stamp frames at send "
+                            "(default: lockstep, as fast as possible, simulated-time stamps)")
+    f_g = p.add_argument_group("fault injection (docs/firmware.md; rates are per sample, exclusive)")
+    for name, what in (("drop", "a frame is not sent"), ("duplicate", "a frame is sent twice"),
+                       ("reorder", "a sample is sent after the device's next one"),
+                       ("corrupt", "a measurement byte is flipped"), ("bad-dlc", "a frame is truncated/extended")):
+        f_g.add_argument(f"--{name}-rate", type=float, metavar="P", help=f"probability {what}")
+    f_g.add_argument("--silent", action="append", default=[], metavar="DEVICE:START_S:DURATION_S",
+                     help="the device sends nothing for a while (repeatable); devices: <arm> (its F/T), "
+                          "<arm>/<joint>, <arm>/torque_cmd, imu, thrusters, valves")
+    f_g.add_argument("--counter-jump", action="append", default=[], metavar="DEVICE:AT_S:N",
+                     help="the device's counter skips N values (1..126) at AT_S (repeatable)")
+    f_g.add_argument("--fault-seed", type=int, metavar="N", help="seed of the random faults (default 0)")
+
+
+def _triples(values: list[str], flag: str, kinds) -> tuple:
+    out = []
+    for v in values:
+        parts = v.rsplit(":", 2)
+        try:
+            if len(parts) != 3 or not parts[0]:
+                raise ValueError
+            out.append((parts[0], kinds[0](parts[1]), kinds[1](parts[2])))
+        except ValueError:
+            raise ValueError(f"{flag} {v!r}: expected {flag[2:].upper().replace('-', '_')} as "
+                             f"DEVICE:{'START_S:DURATION_S' if flag == '--silent' else 'AT_S:N'}") from None
+    return tuple(out)
+
+
+def faults_from(args: argparse.Namespace, table) -> "object":
+    """The scenario's ``[faults]`` table with the command-line knobs on top."""
+    from simulator.firmware import Faults
+
+    f = Faults.from_table(table)
+    changes = {}
+    for name in ("drop", "duplicate", "reorder", "corrupt", "bad_dlc"):
+        v = getattr(args, f"{name}_rate")
+        if v is not None:
+            changes[f"{name}_rate"] = v
+    if args.silent:
+        changes["silent"] = f.silent + _triples(args.silent, "--silent", (float, float))
+    if args.counter_jump:
+        changes["counter_jumps"] = f.counter_jumps + _triples(args.counter_jump, "--counter-jump", (float, int))
+    if args.fault_seed is not None:
+        changes["seed"] = args.fault_seed
+    return f.replace(**changes) if changes else f
+
+
+def _uses_can(args: argparse.Namespace) -> bool:
+    return bool(args.channel or args.fd or args.realtime or args.silent or args.counter_jump
+                or args.fault_seed is not None
+                or any(getattr(args, f"{n}_rate") is not None for n in ("drop", "duplicate", "reorder", "corrupt", "bad_dlc")))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,17 +106,25 @@ def run(args: argparse.Namespace) -> int:
         overrides["seed"] = args.seed
     if args.robot:
         overrides["robot"] = args.robot
+    if args.interface is None and _uses_can(args):
+        raise ValueError("--channel, --fd, --realtime and the fault options need --interface")
     sc = scenario.load(args.scenario, overrides)
     args.out.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
     sim = Simulation(sc)
-    trace = sim.run(progress=not args.quiet)
+    can_summary = None
+    if args.interface is None:
+        trace = sim.run(progress=not args.quiet)
+    else:
+        trace, can_summary = _run_on_can(args, sc, sim)
     wall = time.perf_counter() - t0
     trace.save(args.out / "truth.npz")
     summary = {"scenario": sc.name, "robot": sim.robot.name, "duration_s": sc.duration_s,
                "steps": trace.n, "wall_s": round(wall, 3), "realtime_factor": round(sc.duration_s / wall, 2),
                "files": ["truth.npz"]}
+    if can_summary is not None:
+        summary["can"] = can_summary
     if not args.no_plots:
         traces = {"with friction": trace}
         if not args.no_compare and sc.cfg.friction.coulomb_fraction > 0:
@@ -65,4 +138,33 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"simulated {sc.duration_s:g} s of {sc.name!r} ({sim.robot.name}) in {wall:.1f} s "
           f"({summary['realtime_factor']:g}x real time); wrote {', '.join(summary['files'])} to {args.out}/")
+    if can_summary is not None:
+        sent = ", ".join(f"{b} {n}" for b, n in can_summary["frames_sent"].items())
+        injected = {k: v for k, v in can_summary["faults_injected"].items() if v}
+        print(f"sent on {args.interface} ({'real time' if args.realtime else 'lockstep'}): frames {sent}"
+              + (f"; faults injected {injected}" if injected else ""))
     return 0
+
+
+def _run_on_can(args: argparse.Namespace, sc, sim):
+    import can
+
+    from gateway.cli import UserError
+    from gateway.commands.gateway import channels
+    from simulator import firmware
+
+    faults = faults_from(args, sc.data.get("faults"))
+    fw = firmware.Firmware(sim.robot, fd=args.fd, faults=faults)
+    chans = channels(args.channel or ["bsc"], list(fw.wire.buses))
+    try:
+        # a FirmwareError (a channel that cannot work) is a ValueError: one line, exit 2
+        buses = firmware.open_buses(sim.robot, args.interface, chans, fd=args.fd)
+    except (can.CanError, ImportError, NotImplementedError, OSError) as exc:
+        raise UserError(f"cannot open the CAN buses on {args.interface} ({', '.join(chans.values())}): {exc}") from None
+    with buses:
+        trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=args.realtime, progress=not args.quiet)
+    totals = {k: sum(fw.counts[d][k] for d in fw.devices) for k in firmware.COUNT_KEYS if k != "samples"}
+    return trace, {"interface": args.interface, "channels": chans, "fd": args.fd, "realtime": args.realtime,
+                   "frames_sent": dict(fw.frames_sent), "faults_injected": totals,
+                   "faults_per_device": {d: {k: v for k, v in fw.counts[d].items() if v and k != "samples"}
+                                         for d in fw.devices if any(v for k, v in fw.counts[d].items() if k != "samples")}}

@@ -111,3 +111,34 @@ def joint_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq:
     tau_m = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)
     w_model = _model_sensor_wrenches(model, data)
     return tau_m[6:] + _apply(model, data.A_tau, np.asarray(ft, dtype=float) - w_model)
+
+
+def joint_accelerations_from_ft(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray,
+                                ft: np.ndarray, a_s: np.ndarray, w_s: np.ndarray, dw_s: np.ndarray,
+                                weights: np.ndarray | None = None) -> np.ndarray:
+    """Joint accelerations (rad/s^2) that make the model's sensor wrenches match the measured ones.
+
+    In zero gravity an arm's sensor wrench is the rate of change of the arm's momentum: affine in
+    its joint accelerations given ``q``, ``dq`` and the base motion, ``w = w0 + J ddq``. Each arm's
+    ``ddq`` is the weighted least-squares solution (``weights`` (6,): 1/sigma of the F/T channels;
+    default force 1/0.25 N, moment 1/0.025 N m). Needs as many independent wrench components as
+    the arm has joints (planar two-link arm: fx, fy, tz for two joints). This is the high-bandwidth
+    acceleration the full estimate needs: no numerical differentiation, no lag.
+    """
+    pm, pd = model.robot.model, data.pin_data
+    _rnea(model, data, q, dq, np.zeros(model.n_joints), a_s, w_s, dw_s)
+    w0 = _model_sensor_wrenches(model, data)
+    wt = np.array([4.0, 4.0, 4.0, 40.0, 40.0, 40.0]) if weights is None else np.asarray(weights, dtype=float)
+    ddq = np.zeros(model.n_joints)
+    v0 = np.zeros(pm.nv)
+    for arm in model.arms:
+        J = np.empty((6, len(arm.columns)))
+        for k, col in enumerate(arm.columns):
+            a = np.zeros(pm.nv)
+            a[6 + col] = 1.0
+            pin.rnea(pm, pd, data.q, v0, a)
+            j1 = arm.joints[0]
+            J[:, k] = arm.sensor_inv.act(pd.oMi[j1].act(pd.f[j1])).vector
+        rhs = (np.asarray(ft[arm.index], dtype=float) - w0[arm.index]) * wt
+        ddq[list(arm.columns)] = np.linalg.lstsq(J * wt[:, None], rhs, rcond=None)[0]
+    return ddq

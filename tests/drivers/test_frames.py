@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from drivers import frames, wire
-from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 
 H = bytes.fromhex
 
@@ -78,6 +78,16 @@ def test_golden_thruster():
     s = frames.decode_thruster(THR, 3)
     assert s == ThrusterCommand(3, 9, (10.0, 0.0, -1.0), (0.0, 2.0, 0.0), valves=0b1011)
     assert dict(frames.thruster_payloads(s)) == THR
+
+# valve commands, counter 0x2A: thrusters 0, 3 and 17 open = bits 0b10_0000_0000_0000_1001 = 0x00020009
+VALVES = H("2A 00020009")
+
+
+def test_golden_valves():
+    assert frames.decode_valves(VALVES, 5) == ValveCommand(5, 0x2A, 0x20009)
+    assert frames.valves_payload(ValveCommand(5, 0x12A, (1 << 0) | (1 << 3) | (1 << 17))) == (0x183, VALVES)
+    with pytest.raises(frames.EncodeError):
+        frames.valves_payload(ValveCommand(0, 0, 1 << 32))
 
 
 def test_golden_heartbeat():

@@ -1,0 +1,205 @@
+"""``bsc replay FILE``: run a recorded session again, offline or live.
+
+- ``--out DIR``: offline. The raw CAN frames go through fresh drivers and estimator as fast as
+  possible; ``DIR/replay.mcap`` gets every sample, health report and effort, ``DIR/report.json``
+  the counts, rejections and speed.
+- ``--interface I --channel PREFIX|BUS=CH``: the raw frames go back onto CAN buses (any
+  python-can interface) with their recorded timing.
+- ``--zenoh [--connect ...]``: the recorded samples and efforts are republished on their keys
+  with their recorded timing.
+
+Options as rosbag2 users expect: ``--rate`` (0 = as fast as possible), ``--loop``,
+``--start``/``--duration`` (seconds from the log's start), ``--can-id`` and ``--topic``
+filters, a progress bar (``--quiet`` hides it).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", help="MCAP log written by bsc record / the gateway")
+    mode = parser.add_argument_group("mode (exactly one)")
+    mode.add_argument("--out", "-o", metavar="DIR",
+                      help="offline: replay through drivers + estimator into DIR")
+    mode.add_argument("--interface", "-i", default=None,
+                      help="live CAN: python-can interface (socketcan, virtual, ...)")
+    mode.add_argument("--zenoh", action="store_true",
+                      help="live zenoh: republish the recorded samples and efforts")
+    can_g = parser.add_argument_group("CAN")
+    can_g.add_argument("--channel", "-c", action="append", default=[],
+                       metavar="PREFIX|BUS=CHANNEL",
+                       help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL per bus to play "
+                            "(repeatable; buses not named are not played)")
+    can_g.add_argument("--fd", action="store_true",
+                       help="CAN FD buses (default: as the log says)")
+    sel = parser.add_argument_group("selection and timing")
+    sel.add_argument("--rate", "-r", type=float, default=1.0, metavar="R",
+                     help="playback speed factor (default 1; 0 = as fast as possible)")
+    sel.add_argument("--loop", "-l", action="store_true", help="play again and again until Ctrl-C")
+    sel.add_argument("--start", type=float, default=None, metavar="S",
+                     help="begin S seconds after the log's start")
+    sel.add_argument("--duration", type=float, default=None, metavar="S",
+                     help="play S seconds of the log")
+    sel.add_argument("--can-id", action="append", default=[], metavar="ID[,ID...]",
+                     help="only these CAN ids (decimal or 0x hex; repeatable)")
+    sel.add_argument("--topic", action="append", default=[], metavar="GLOB",
+                     help="only topics matching GLOB (e.g. '/can/arm0', 'bsc/*/efforts/**'; "
+                          "repeatable)")
+    sel.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    off = parser.add_argument_group("offline")
+    off.add_argument("--robot", default=None, metavar="NAME|FILE",
+                     help="robot description (default: the log's robot.urdf attachment)")
+    off.add_argument("--model", default=None, metavar="NAME|FILE",
+                     help="the estimator's robot model, if not the robot's own")
+    off.add_argument("--copy-can", action="store_true",
+                     help="copy the raw frames into the output (a replayable output)")
+    off.add_argument("--force", action="store_true", help="replace DIR/replay.mcap, report.json")
+    zen = parser.add_argument_group("zenoh playback")
+    zen.add_argument("--wait", type=float, default=0.0, metavar="S",
+                     help="wait up to S s for subscribers to match before publishing")
+    from gateway.zenoh_config import add_zenoh_arguments
+
+    add_zenoh_arguments(parser)
+
+
+def _warn(text: str) -> None:
+    print(f"bsc replay: warning: {text}", file=sys.stderr, flush=True)
+
+
+def _bus_channels(spec: list[str], buses: list[str]) -> dict[str, str]:
+    from drivers.wire import channel_name
+    from gateway.cli import UserError
+
+    pairs = [c for c in spec if "=" in c]
+    if pairs and len(pairs) != len(spec):
+        raise UserError("--channel: give either one prefix or BUS=CHANNEL pairs")
+    if not pairs:
+        if len(spec) != 1:
+            raise UserError("--channel: give one prefix, or BUS=CHANNEL pairs")
+        return {b: channel_name(spec[0], b) for b in buses}
+    out = dict(c.split("=", 1) for c in pairs)
+    unknown = set(out) - set(buses)
+    if unknown:
+        raise UserError(f"--channel: the log's buses are {', '.join(buses) or 'none'}; "
+                        f"unknown {', '.join(sorted(unknown))}")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from gateway.cli import UserError
+    from gateway.replay import parse_can_ids
+
+    modes = [m for m, on in (("--out", args.out is not None), ("--interface", args.interface),
+                             ("--zenoh", args.zenoh)) if on]
+    if len(modes) != 1:
+        raise UserError("choose one mode: --out DIR (offline), --interface/--channel (CAN) "
+                        "or --zenoh" + (f" (got {' '.join(modes)})" if modes else ""))
+    if args.rate < 0:
+        raise UserError(f"--rate {args.rate}: must be >= 0 (0 = as fast as possible)")
+    if args.interface and not args.channel:
+        raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
+    if args.channel and not args.interface:
+        raise UserError("--channel needs --interface")
+    can_ids = parse_can_ids(args.can_id) if args.can_id else None
+    if args.out is not None:
+        return _offline(args, can_ids)
+    if args.loop and args.rate == 0:
+        raise UserError("--loop needs --rate > 0 (an unpaced endless loop would flood)")
+    if args.interface:
+        return _live_can(args, can_ids)
+    if can_ids is not None:
+        raise UserError("--can-id filters raw CAN frames: use it with --out or --interface")
+    return _live_zenoh(args)
+
+
+def _offline(args: argparse.Namespace, can_ids) -> int:
+    from gateway.replay import replay_offline
+
+    r = replay_offline(args.file, args.out, robot=args.robot, model=args.model,
+                       fd=True if args.fd else None, start_s=args.start,
+                       duration_s=args.duration, can_ids=can_ids, topics=args.topic or None,
+                       copy_can=args.copy_can, overwrite=args.force,
+                       progress=not args.quiet, warn=_warn)
+    print(f"bsc replay: {r.frames_in} frames, {r.log_duration_s:.3f} s of log in "
+          f"{r.wall_s:.2f} s ({r.speed_x_realtime:.1f}x real time, {r.frames_per_s:.0f} frames/s)")
+    print(f"bsc replay: {r.samples} samples, {r.efforts} efforts ({r.good_efforts} good), "
+          f"{r.health_reports} health reports, {r.alerts} alerts")
+    if r.rejections:
+        print("bsc replay: rejected: " + ", ".join(f"{k} {v}" for k, v in r.rejections.items()))
+    if r.frames_skipped:
+        print("bsc replay: skipped: " + ", ".join(f"{k} {v}" for k, v in r.frames_skipped.items()))
+    dropped = r.recorder.get("dropped_queue_full", 0) + r.recorder.get("dropped_write_error", 0)
+    if dropped:
+        print(f"bsc replay: warning: {dropped} messages not written")
+    print(f"bsc replay: wrote {r.output} and {r.output.rsplit('/', 1)[0]}/report.json")
+    return 0
+
+
+def _stop_on_sigterm():
+    import signal
+    import threading
+
+    stop = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    def restore() -> None:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+    return stop, restore
+
+
+def _live_can(args: argparse.Namespace, can_ids) -> int:
+    import contextlib
+
+    import can
+
+    from gateway.cli import UserError
+    from gateway.replay import play_can, read_context, readable
+
+    stop, restore = _stop_on_sigterm()
+    try:
+        with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
+            ctx = read_context(src)
+            chans = _bus_channels(args.channel, ctx.buses)
+            fd = args.fd or ctx.fd
+            buses = {}
+            for name, ch in chans.items():
+                kw = {"fd": True} if fd else {}
+                try:
+                    buses[name] = stack.enter_context(can.Bus(
+                        interface=args.interface, channel=ch, ignore_config=True, **kw))
+                except (can.CanError, ImportError, ValueError) as exc:
+                    raise UserError(f"cannot open CAN bus {name} ({args.interface} {ch}): "
+                                    f"{exc}") from None
+            stats = play_can(src, buses, rate=args.rate, loop=args.loop, start_s=args.start,
+                             duration_s=args.duration, can_ids=can_ids,
+                             topics=args.topic or None, stop=stop, progress=not args.quiet,
+                             warn=_warn)
+    finally:
+        restore()
+    print("bsc replay: " + stats.line("sent frames"))
+    return 0
+
+
+def _live_zenoh(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from gateway.replay import play_zenoh
+    from gateway.zenoh_config import config_from_args
+
+    stop, restore = _stop_on_sigterm()
+    try:
+        with zenoh.open(config_from_args(args)) as session:
+            stats = play_zenoh(args.file, session, rate=args.rate, loop=args.loop,
+                               start_s=args.start, duration_s=args.duration,
+                               topics=args.topic or None, stop=stop, progress=not args.quiet,
+                               wait_s=args.wait, warn=_warn)
+    finally:
+        restore()
+    print("bsc replay: " + stats.line("published samples"))
+    return 0

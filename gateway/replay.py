@@ -1,0 +1,877 @@
+"""Replay a recorded session: offline through drivers + estimator, or live onto CAN / zenoh.
+
+Three engines over one reader:
+
+- :func:`replay_offline` feeds the raw CAN frames of a log, in the order the live gateway fed
+  them, through a fresh :class:`gateway.pipeline.Pipeline` as fast as it can, records every
+  sample, health report and effort it emits to a new MCAP file, and writes ``report.json``.
+  Same frames in the same order give the same emits, so the efforts are byte-identical to the
+  ones recorded live (``tests/recording/test_replay.py``).
+- :func:`play_can` puts the raw frames back on python-can buses with their original spacing
+  (scaled by ``rate``).
+- :func:`play_zenoh` republishes the recorded samples, health and efforts on their keys, with
+  their original spacing, payloads encoded by :mod:`gateway.codec` (byte-identical to what the
+  gateway published).
+
+Order: frames are read in FILE order, not log-time order. The recorder writes messages in the
+order ``record*`` was called, so file order is the order the live gateway recorded (and fed)
+them, even where timestamps of two buses interleave out of order. Log time (``t_ns``) gives
+the timing of live playback and the log time of every replayed emit.
+
+Bad input (empty, foreign, corrupt) raises :class:`ReplayError` or
+:class:`gateway.mcaplog.McapFileError`, both ``ValueError`` with one readable line; a truncated
+file (killed recorder) is recovered into a temporary copy first (:func:`readable`).
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fnmatch
+import json
+import os
+import re
+import struct
+import tempfile
+import threading
+import time
+import zlib
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from gateway import mcaplog
+from gateway.mcaplog import McapFileError
+from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX,
+                              RECORDING_METADATA, SCENARIO_ATTACHMENT, SESSION_METADATA,
+                              URDF_ATTACHMENT, ZENOH_KEYS_METADATA, can_frame_from_record)
+
+REPORT_NAME = "report.json"
+OUTPUT_NAME = "replay.mcap"
+# The recorder's queue is drained at least this often by an offline replay (never refused).
+_BACKPRESSURE_EVERY = 4096
+_SLEEP_MIN_S = 0.0002          # closer than this to a frame's time: send now, not sleep
+
+
+class ReplayError(ValueError):
+    """A log cannot be replayed as asked (nothing to replay, no robot, no pipeline...)."""
+
+
+Warn = Callable[[str], None]
+
+
+def _no_warn(_: str) -> None:
+    pass
+
+
+# ----------------------------------------------------------------------------- the log
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class LogContext:
+    """What a complete log says about itself (from its summary, metadata and attachments)."""
+
+    path: Path
+    metadata: dict[str, dict[str, str]]
+    attachments: dict[str, tuple[str, bytes]]      # name -> (media type, data)
+    topics: dict[str, str]                         # topic -> schema name
+    message_count: int
+    start_ns: int | None
+    end_ns: int | None
+
+    @property
+    def buses(self) -> list[str]:
+        """Logical CAN buses with a raw channel (``/can/<bus>``), in channel order."""
+        return [t[len(CAN_TOPIC_PREFIX):] for t, s in self.topics.items()
+                if t.startswith(CAN_TOPIC_PREFIX) and s == CAN_SCHEMA_NAME]
+
+    @property
+    def session(self) -> dict[str, str]:
+        return self.metadata.get(SESSION_METADATA, {})
+
+    @property
+    def urdf_text(self) -> str | None:
+        att = self.attachments.get(URDF_ATTACHMENT)
+        return att[1].decode("utf-8", "replace") if att else None
+
+    @property
+    def robot_name(self) -> str | None:
+        """``bsc.session`` ``robot``, else the URDF's ``<robot name=...>``."""
+        name = self.session.get("robot")
+        if name:
+            return name
+        m = re.search(r"<robot\b[^>]*\bname\s*=\s*[\"']([^\"']+)[\"']", self.urdf_text or "")
+        return m.group(1) if m else None
+
+    @property
+    def fd(self) -> bool:
+        return self.session.get("fd", "false").lower() == "true"
+
+    def window(self, start_s: float | None, duration_s: float | None) -> tuple[int | None, int | None]:
+        """``[start_ns, end_ns)`` from offsets relative to the log's first message."""
+        if start_s is not None and start_s < 0:
+            raise ReplayError(f"--start {start_s}: must be >= 0")
+        if duration_s is not None and duration_s <= 0:
+            raise ReplayError(f"--duration {duration_s}: must be positive")
+        if self.start_ns is None:
+            return None, None
+        start = self.start_ns + round((start_s or 0.0) * 1e9) if start_s is not None else None
+        end = None
+        if duration_s is not None:
+            end = (start if start is not None else self.start_ns) + round(duration_s * 1e9)
+        return start, end
+
+
+def read_context(path: str | os.PathLike[str]) -> LogContext:
+    """The summary, metadata and attachments of a complete log (see :func:`readable`)."""
+    from mcap.reader import SeekingReader
+
+    path = Path(path)
+    mcaplog.scan_header(path)
+    ok, why = mcaplog.check_footer(path)
+    if not ok:
+        raise McapFileError(f"{path}: file is truncated ({why}); run `bsc recover {path}` first")
+    try:
+        with open(path, "rb") as f:
+            reader = SeekingReader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
+    except mcaplog._PARSE_ERRORS as exc:
+        raise McapFileError(f"{path}: corrupt summary ({exc}); `bsc recover {path}` "
+                            "rebuilds it") from exc
+    topics: dict[str, str] = {}
+    count, start, end = 0, None, None
+    if summary is not None:
+        for ch in summary.channels.values():
+            schema = summary.schemas.get(ch.schema_id)
+            topics.setdefault(ch.topic, schema.name if schema else "")
+        st = summary.statistics
+        if st is not None and st.message_count:
+            count, start, end = st.message_count, st.message_start_time, st.message_end_time
+    return LogContext(path, metadata, attachments, topics, count, start, end)
+
+
+@contextlib.contextmanager
+def readable(path: str | os.PathLike[str], warn: Warn = _no_warn) -> Iterator[Path]:
+    """A complete version of ``path``: itself, or (truncated: a killed recorder, a full disk) a
+    temporary recovered copy, after one warning line. Foreign / empty files raise
+    :class:`McapFileError`."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory, not an MCAP file")
+    mcaplog.scan_header(path)
+    ok, why = mcaplog.check_footer(path)
+    if ok:
+        yield path
+        return
+    with tempfile.TemporaryDirectory(prefix="bsc-replay-") as tmp:
+        report = mcaplog.recover(path, Path(tmp) / path.name)
+        if report.messages == 0:
+            raise ReplayError(f"{path}: truncated ({why}) and no complete message survives")
+        warn(f"{path} is truncated ({report.stop_reason or why}); replaying the "
+             f"{report.messages} messages recovered from it")
+        yield report.output
+
+
+class _Msg(NamedTuple):
+    log_time: int
+    data: bytes
+
+
+_RECORD = struct.Struct("<BQ")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")        # channel id, sequence, log time, publish time
+_OP_CHANNEL, _OP_MESSAGE = 0x04, 0x05
+
+
+def _chunk_messages(chunk, chans: Mapping[int, Any]) -> list[tuple[int, int, bytes]] | None:
+    """``(channel id, log time, data)`` of every message of a chunk, parsed with ``struct``
+    (the library builds a Python record object per message, the slowest part of a replay).
+    ``None`` when the chunk needs the library: other compression, or a channel not yet known.
+    CRC and decompression errors raise as the library's would."""
+    if chunk.compression == "zstd":
+        import zstandard
+
+        data = zstandard.ZstdDecompressor().decompress(
+            chunk.data, max_output_size=chunk.uncompressed_size)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        return None
+    if len(data) != chunk.uncompressed_size:
+        raise ValueError(f"chunk decompressed to {len(data)} bytes, "
+                         f"{chunk.uncompressed_size} announced")
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError("chunk CRC mismatch")
+    out = []
+    append = out.append
+    rec_unpack = _RECORD.unpack_from
+    head_unpack = _MESSAGE_HEAD.unpack_from
+    off, end = 0, len(data)
+    while off < end:
+        op, length = rec_unpack(data, off)
+        body = off + 9
+        off = body + length
+        if off > end:
+            raise ValueError("record runs past the end of its chunk")
+        if op == _OP_MESSAGE:
+            cid, _, t, _ = head_unpack(data, body)
+            if cid not in chans:
+                return None
+            append((cid, t, data[body + 22:off]))
+        elif op == _OP_CHANNEL and _CHANNEL_ID.unpack_from(data, body)[0] not in chans:
+            return None
+    return out
+
+
+_CHANNEL_ID = struct.Struct("<H")
+
+
+def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], bool] | None = None,
+                    start_ns: int | None = None, end_ns: int | None = None
+                    ) -> Iterator[tuple[str, str, Any]]:
+    """``(topic, schema_name, message)`` of a complete log in FILE (= recording) order;
+    ``message`` has ``log_time`` (ns) and ``data`` (bytes).
+
+    ``want(topic, schema_name)`` selects channels; ``[start_ns, end_ns)`` selects log times
+    (chunks wholly outside are skipped without decompressing them).
+    """
+    from mcap.records import Channel, Chunk, DataEnd, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    path = Path(path)
+    schemas: dict[int, str] = {}
+    chans: dict[int, tuple[str, str] | None] = {}
+
+    def register(rec) -> None:
+        if isinstance(rec, Channel):
+            name = schemas.get(rec.schema_id, "")
+            chans[rec.id] = (rec.topic, name) if want is None or want(rec.topic, name) else None
+        elif isinstance(rec, Schema):
+            schemas[rec.id] = rec.name
+
+    with open(path, "rb") as f:
+        # Channel and schema records live inside chunks (written before first use): take them
+        # from the summary, so that a chunk skipped for its time range cannot hide one.
+        try:
+            from mcap.reader import SeekingReader
+
+            summary = SeekingReader(f).get_summary()
+        except mcaplog._PARSE_ERRORS as exc:
+            raise McapFileError(f"{path}: corrupt summary ({exc}); `bsc recover {path}` "
+                                "rebuilds it") from exc
+        if summary is not None:
+            for sc in summary.schemas.values():
+                register(sc)
+            for ch in summary.channels.values():
+                register(ch)
+        f.seek(0)
+        records = StreamReader(f, emit_chunks=True).records
+        while True:
+            try:
+                rec = next(records, None)
+                if rec is None or isinstance(rec, DataEnd):
+                    return
+                if isinstance(rec, Chunk):
+                    if ((end_ns is not None and rec.message_start_time >= end_ns)
+                            or (start_ns is not None and rec.message_end_time < start_ns)):
+                        continue
+                    fast = _chunk_messages(rec, chans)
+                    if fast is not None:
+                        for cid, t, data in fast:
+                            ch = chans[cid]
+                            if (ch is not None and (start_ns is None or t >= start_ns)
+                                    and (end_ns is None or t < end_ns)):
+                                yield ch[0], ch[1], _Msg(t, data)
+                        continue
+                    inner = breakup_chunk(rec, validate_crc=True)
+                else:
+                    inner = (rec,)
+            except mcaplog._PARSE_ERRORS as exc:
+                raise McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
+                                    "copies everything that is intact") from exc
+            for r in inner:
+                if isinstance(r, Message):
+                    ch = chans.get(r.channel_id)
+                    t = r.log_time
+                    if (ch is not None and (start_ns is None or t >= start_ns)
+                            and (end_ns is None or t < end_ns)):
+                        yield ch[0], ch[1], r
+                else:
+                    register(r)
+
+
+def _json(path: Path, topic: str, data: bytes) -> dict[str, Any]:
+    try:
+        obj = json.loads(data)
+    except ValueError as exc:
+        raise McapFileError(f"{path}: {topic}: a message is not JSON ({exc})") from None
+    if not isinstance(obj, dict):
+        raise McapFileError(f"{path}: {topic}: a message is not a JSON object")
+    return obj
+
+
+def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
+                    can_ids: Iterable[int] | None = None, start_ns: int | None = None,
+                    end_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
+    """``(bus, t_ns, can.Message)`` of the raw CAN channels in recording order.
+
+    ``t_ns`` is the log time (the frame's own timestamp); ``msg.timestamp`` is ``t_ns / 1e9``,
+    which rounds back to exactly ``t_ns``.
+    """
+    bus_set = None if buses is None else {CAN_TOPIC_PREFIX + b for b in buses}
+    id_set = None if can_ids is None else frozenset(can_ids)
+
+    def want(topic: str, schema: str) -> bool:
+        return (schema == CAN_SCHEMA_NAME and topic.startswith(CAN_TOPIC_PREFIX)
+                and (bus_set is None or topic in bus_set))
+
+    cut = len(CAN_TOPIC_PREFIX)
+    for topic, _, m in iter_file_order(path, want, start_ns, end_ns):
+        rec = _json(path, topic, m.data)
+        if id_set is not None and rec.get("arbitration_id") not in id_set:
+            continue
+        try:
+            msg = can_frame_from_record(rec)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
+        yield topic[cut:], m.log_time, msg
+
+
+# ----------------------------------------------------------------------------- robots
+
+def resolve_robot(ctx: LogContext, robot: str | None = None):
+    """The robot to decode with: ``robot`` (name or URDF path) if given, else the log's
+    ``robot.urdf`` attachment, else the built-in robot named in its metadata."""
+    import robot_description
+
+    if robot is not None:
+        return robot_description.load(robot)
+    name = ctx.robot_name
+    if ctx.urdf_text is not None:
+        return robot_description.from_urdf_text(ctx.urdf_text, name=name or "robot")
+    if name:
+        return robot_description.load(name)
+    raise ReplayError(f"{ctx.path}: the log names no robot (no {URDF_ATTACHMENT} attachment, "
+                      f"no robot in {SESSION_METADATA}); pass --robot NAME|FILE")
+
+
+def key_scheme(wire_map) -> dict[str, str]:
+    """Every zenoh key this robot's gateway publishes under, by name (the ``zenoh.keys``
+    metadata of a session)."""
+    from gateway import keys
+
+    robot = wire_map.robot
+    out = {"everything": keys.everything(robot), "sensors": keys.sensors(robot),
+           "commands": keys.commands(robot), "health": keys.health(robot),
+           "efforts": keys.efforts(robot), "imu": keys.imu(robot),
+           "thruster_command": keys.thruster_command(robot),
+           "thruster_effort": keys.thruster_effort(robot), "alerts": keys.alerts(robot),
+           "health/device/imu": keys.device_health(robot, "imu"),
+           "health/device/thrusters": keys.device_health(robot, "thrusters")}
+    for name, spec in wire_map.buses.items():
+        out[f"health/bus/{name}"] = keys.bus_health(robot, name)
+        if spec.arm is None:
+            continue
+        arm = spec.arm
+        out[f"wrench/{arm}"] = keys.wrench(robot, arm)
+        out[f"joint_efforts/{arm}"] = keys.joint_efforts(robot, arm)
+        out[f"health/device/{arm}"] = keys.device_health(robot, arm)
+        for j in spec.joints:
+            dev = f"{arm}/{j}"
+            out[f"joint/{dev}"] = keys.joint(robot, dev)
+            out[f"torque_command/{dev}"] = keys.torque_command(robot, dev)
+            out[f"health/device/{dev}"] = keys.device_health(robot, dev)
+    return out
+
+
+def session_context(robot, *, fd: bool = False, scenario_text: str | None = None,
+                    dbc_files: Mapping[str, bytes | str] | None = None,
+                    extra: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Keyword arguments for :meth:`Recorder.add_session_context` that make a log of this robot
+    replayable on its own: URDF, the DBCs, the key scheme, software version, robot name, fd."""
+    from drivers.wire import DBC_FILES, WireMap
+    from gateway import __version__
+
+    wm = WireMap.from_robot(robot)
+    dbcs = dict(dbc_files) if dbc_files is not None else {
+        p.name: p.read_text() for p in DBC_FILES.values()}
+    session = {"robot": robot.name, "fd": str(bool(fd)).lower(),
+               "buses": ",".join(wm.buses)}
+    session.update(extra or {})
+    return dict(urdf_text=robot.urdf, dbc_files=dbcs, scenario_text=scenario_text,
+                zenoh_keys=key_scheme(wm), software=f"bsc {__version__}", extra=session)
+
+
+# ----------------------------------------------------------------------------- offline
+
+def _default_pipeline_factory():
+    try:
+        from gateway.pipeline import Pipeline
+    except ImportError as exc:
+        raise ReplayError("offline replay needs gateway.pipeline (the drivers + estimator core), "
+                          f"which this build does not have ({exc})") from None
+    return Pipeline
+
+
+@dataclasses.dataclass(slots=True)
+class OfflineReport:
+    """What ``report.json`` holds (see :func:`replay_offline`)."""
+
+    source: str
+    output: str
+    robot: str
+    source_recovered: bool = False
+    frames_in: int = 0
+    frames_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
+    samples: int = 0
+    efforts: int = 0
+    good_efforts: int = 0
+    health_reports: int = 0
+    alerts: int = 0
+    rejections: dict[str, int] = dataclasses.field(default_factory=dict)
+    rejections_by_device: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
+    by_key: dict[str, int] = dataclasses.field(default_factory=dict)
+    log_start_ns: int | None = None
+    log_end_ns: int | None = None
+    log_duration_s: float = 0.0
+    wall_s: float = 0.0
+    speed_x_realtime: float = 0.0
+    frames_per_s: float = 0.0
+    recorder: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str], *,
+                   robot: str | None = None, model: str | None = None, fd: bool | None = None,
+                   start_s: float | None = None, duration_s: float | None = None,
+                   can_ids: Iterable[int] | None = None, topics: Iterable[str] | None = None,
+                   copy_can: bool = False, overwrite: bool = False,
+                   pipeline_factory: Callable[..., Any] | None = None,
+                   progress: bool = False, warn: Warn = _no_warn) -> OfflineReport:
+    """Feed the raw frames of ``path`` through a fresh pipeline; write ``OUT/replay.mcap`` and
+    ``OUT/report.json``; return the report.
+
+    Every emit ``(key, obj)`` is recorded on topic ``key`` with log time = the timestamp of the
+    frame whose feed produced it; after the last frame the pipeline is flushed (as the live
+    gateway does when it stops; those emits get the last frame's time) and one health snapshot per bus and device
+    (at the last frame's time) is recorded and its rejection counters fill the report.
+    ``robot`` overrides the log's URDF (``model`` the estimator's belief, default the same).
+    ``copy_can`` also copies the replayed raw frames, making the output replayable itself.
+    ``topics`` (globs over ``/can/<bus>``) and ``can_ids`` select frames; ``start_s`` and
+    ``duration_s`` a window relative to the log's first message.
+    """
+    from gateway import keys
+    from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+    from gateway.recorder import Recorder
+    from drivers.samples import BusHealth, DeviceHealth
+
+    import robot_description
+
+    out_dir = Path(out_dir)
+    with readable(path, warn) as src:
+        ctx = read_context(src)
+        if not ctx.buses:
+            raise ReplayError(f"{path}: no raw CAN channels ({CAN_TOPIC_PREFIX}<bus>) to replay"
+                              + (" (empty log)" if ctx.message_count == 0 else ""))
+        Pipeline = pipeline_factory or _default_pipeline_factory()
+        pick = _topic_pred(topics)
+        buses = [b for b in ctx.buses if pick(CAN_TOPIC_PREFIX + b)]
+        if not buses:
+            raise ReplayError(f"{path}: --topic selects none of the raw CAN channels "
+                              f"({', '.join(CAN_TOPIC_PREFIX + b for b in ctx.buses)})")
+        rob = resolve_robot(ctx, robot)
+        model_robot = robot_description.load(model) if model is not None else None
+        use_fd = ctx.fd if fd is None else fd
+        start_ns, end_ns = ctx.window(start_s, duration_s)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        out_path = out_dir / OUTPUT_NAME
+        report_path = out_dir / REPORT_NAME
+        for p in (out_path, report_path):
+            if p.exists() and not overwrite:
+                raise FileExistsError(f"{p} exists (use --force to replace it)")
+
+        kinds: Counter[str] = Counter()
+        by_key: Counter[str] = Counter()
+        current = [0]                 # log time of the frame being fed
+        state = {"n": 0}
+
+        dbcs = {name[len(DBC_ATTACHMENT_PREFIX):]: data for name, (_, data)
+                in ctx.attachments.items() if name.startswith(DBC_ATTACHMENT_PREFIX)}
+        scenario = ctx.attachments.get(SCENARIO_ATTACHMENT)
+        context = session_context(
+            rob, fd=use_fd, dbc_files=dbcs or None,
+            scenario_text=scenario[1].decode("utf-8", "replace") if scenario else None,
+            extra={"replay_of": Path(path).name,
+                   "replay_of_session": ctx.metadata.get(RECORDING_METADATA, {}).get("session", ""),
+                   "mode": "offline replay",
+                   **({"model": str(model)} if model is not None else {})})
+        with Recorder(out_path, overwrite=overwrite) as rec:
+            rec.add_session_context(**context)
+            queue_half = 65_536 // 2
+
+            def record(key: str, obj) -> None:
+                # Backpressure instead of loss: an offline replay may wait for the disk.
+                state["n"] += 1
+                if state["n"] % _BACKPRESSURE_EVERY == 0 and rec.stats.queue_depth > queue_half:
+                    rec.flush()
+                if not rec.record(key, obj, log_time_ns=current[0]):
+                    raise ReplayError(f"recording {key} was refused ({rec.stats})")
+
+            def emit(key: str, obj) -> None:
+                by_key[key] += 1
+                if isinstance(obj, (JointEfforts, ThrusterEffort)):
+                    kinds["efforts"] += 1
+                    kinds["good_efforts"] += bool(obj.good)
+                elif isinstance(obj, (DeviceHealth, BusHealth)):
+                    kinds["health"] += 1
+                elif isinstance(obj, Alert):
+                    kinds["alerts"] += 1
+                else:
+                    kinds["samples"] += 1
+                record(key, obj)
+
+            kwargs = {"model_robot": model_robot, "fd": use_fd, "emit": emit}
+            pipe = Pipeline(rob, **kwargs)
+            known = set(pipe.buses)
+            skipped: Counter[str] = Counter()
+            bar = _bar(progress, ctx, start_ns, end_ns, "replay")
+            frames = 0
+            first = last = None
+            last_bar = None
+            t0 = time.perf_counter()
+            for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
+                                               start_ns=start_ns, end_ns=end_ns):
+                if bus not in known:
+                    skipped[f"unknown_bus:{bus}"] += 1
+                    continue
+                current[0] = t
+                if copy_can:
+                    rec.record_can(bus, msg, log_time_ns=t)
+                pipe.feed(bus, msg)
+                frames += 1
+                if first is None:
+                    first = last_bar = t
+                last = t
+                if bar is not None and t - last_bar >= 100_000_000:
+                    bar.update((t - last_bar) / 1e9)
+                    last_bar = t
+            if bar is not None:
+                bar.close()
+            flush = getattr(pipe, "flush", None)       # end of input: epochs still waiting
+            if flush is not None and last is not None:
+                current[0] = last
+                flush()
+            final = pipe.health(last) if last is not None else []
+            current[0] = last or 0
+            for h in final:
+                kinds["health"] += 1
+                key = keys.for_sample(rob.name, h)
+                by_key[key] += 1
+                record(key, h)
+            rejections, per_device = _rejections(final)
+            wall = time.perf_counter() - t0
+        if frames == 0:
+            for p in rec.paths:
+                p.unlink(missing_ok=True)
+            raise ReplayError(f"{path}: no CAN frames match the filters / time window")
+        dur = (last - first) / 1e9 if first is not None else 0.0
+        report = OfflineReport(
+            source=str(path), output=str(out_path), robot=rob.name,
+            source_recovered=Path(src) != Path(path), frames_in=frames,
+            frames_skipped=dict(skipped), samples=kinds["samples"], efforts=kinds["efforts"],
+            good_efforts=kinds["good_efforts"], health_reports=kinds["health"],
+            alerts=kinds["alerts"], rejections=rejections, rejections_by_device=per_device,
+            by_key=dict(sorted(by_key.items())), log_start_ns=first, log_end_ns=last,
+            log_duration_s=dur, wall_s=wall, speed_x_realtime=dur / wall if wall > 0 else 0.0,
+            frames_per_s=frames / wall if wall > 0 else 0.0,
+            recorder=dataclasses.asdict(rec.stats) | {"dropped": rec.stats.dropped,
+                                                      "files": [str(p) for p in rec.paths]})
+    tmp = report_path.with_name(f".{report_path.name}.tmp")
+    tmp.write_text(json.dumps(report.to_json(), indent=1) + "\n")
+    os.replace(tmp, report_path)
+    return report
+
+
+def _rejections(health: list) -> tuple[dict[str, int], dict[str, dict[str, int]]]:
+    total: Counter[str] = Counter()
+    per: dict[str, dict[str, int]] = {}
+    for h in health:
+        rej = dict(getattr(h, "rejected", ()) or ())
+        if not rej:
+            continue
+        name = getattr(h, "device", None) or f"bus/{getattr(h, 'bus', '?')}"
+        per[name] = rej
+        total.update(rej)
+    return dict(sorted(total.items())), per
+
+
+# ----------------------------------------------------------------------------- live playback
+
+@dataclasses.dataclass(slots=True)
+class PlayStats:
+    """What a live playback did. ``sent`` by bus (CAN) or key (zenoh)."""
+
+    sent: Counter = dataclasses.field(default_factory=Counter)
+    skipped: Counter = dataclasses.field(default_factory=Counter)
+    errors: Counter = dataclasses.field(default_factory=Counter)
+    loops: int = 0
+    wall_s: float = 0.0
+    log_s: float = 0.0
+    interrupted: bool = False
+
+    @property
+    def total(self) -> int:
+        return sum(self.sent.values())
+
+    def line(self, what: str) -> str:
+        out = f"{what} {self.total} in {self.wall_s:.2f} s"
+        if self.loops > 1:
+            out += f" ({self.loops} loops)"
+        if self.sent:
+            out += " (" + ", ".join(f"{k} {v}" for k, v in sorted(self.sent.items())) + ")"
+        if self.skipped:
+            out += "; skipped " + ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
+        if self.errors:
+            out += "; errors " + ", ".join(f"{k} {v}" for k, v in sorted(self.errors.items()))
+        if self.interrupted:
+            out += "; interrupted"
+        return out
+
+
+class _Clock:
+    """Paces a stream of log times against the monotonic clock, scaled by ``rate`` (0 = no
+    pacing); ``stop`` ends a wait early."""
+
+    def __init__(self, rate: float, stop: threading.Event):
+        if rate < 0:
+            raise ReplayError(f"--rate {rate}: must be >= 0 (0 = as fast as possible)")
+        self.rate, self.stop = rate, stop
+        self.t0: int | None = None
+        self.wall0 = 0.0
+
+    def restart(self) -> None:
+        self.t0 = None
+
+    def wait_for(self, t_ns: int) -> bool:
+        """Wait until log time ``t_ns`` is due; False when stopped."""
+        if self.t0 is None:
+            self.t0, self.wall0 = t_ns, time.monotonic()
+            return not self.stop.is_set()
+        if self.rate > 0:
+            delay = self.wall0 + (t_ns - self.t0) / 1e9 / self.rate - time.monotonic()
+            if delay > _SLEEP_MIN_S:
+                return not self.stop.wait(delay)
+        return not self.stop.is_set()
+
+
+def _bar(progress: bool, ctx: LogContext, start_ns, end_ns, desc: str):
+    if not progress or ctx.start_ns is None:
+        return None
+    from tqdm import tqdm
+
+    lo = ctx.start_ns if start_ns is None else max(start_ns, ctx.start_ns)
+    hi = ctx.end_ns if end_ns is None else min(end_ns, ctx.end_ns)
+    return tqdm(total=round(max(hi - lo, 0) / 1e9, 1), unit="s", desc=desc, leave=False,
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s log "
+                           "[{elapsed}<{remaining}]")
+
+
+def _topic_pred(globs: Iterable[str] | None) -> Callable[[str], bool]:
+    pats = list(globs or ())
+    if not pats:
+        return lambda topic: True
+    return lambda topic: any(fnmatch.fnmatchcase(topic, p) for p in pats)
+
+
+def _play(ctx: LogContext, items: Callable[[], Iterator[tuple[str, int, Any]]],
+          send: Callable[[str, Any], None], stats: PlayStats, *, rate: float, loop: bool,
+          stop: threading.Event | None, progress: bool, start_ns, end_ns, desc: str) -> None:
+    stop = stop or threading.Event()
+    clock = _Clock(rate, stop)
+    t_begin = time.monotonic()
+    try:
+        while True:
+            clock.restart()
+            bar = _bar(progress, ctx, start_ns, end_ns, desc if not loop else
+                       f"{desc} (loop {stats.loops + 1})")
+            first = last_bar = None
+            n = 0
+            try:
+                for name, t, obj in items():
+                    if not clock.wait_for(t):
+                        stats.interrupted = True
+                        return
+                    send(name, obj)
+                    n += 1
+                    if first is None:
+                        first = last_bar = t
+                    stats.log_s = max(stats.log_s, (t - first) / 1e9)
+                    if bar is not None and t - last_bar >= 50_000_000:
+                        bar.update((t - last_bar) / 1e9)
+                        last_bar = t
+            finally:
+                if bar is not None:
+                    bar.close()
+            stats.loops += 1
+            if not loop or n == 0 or stop.is_set():
+                return
+    except KeyboardInterrupt:
+        stats.interrupted = True
+    finally:
+        stats.wall_s = time.monotonic() - t_begin
+
+
+def play_can(path: str | os.PathLike[str], buses: Mapping[str, Any], *, rate: float = 1.0,
+             loop: bool = False, start_s: float | None = None, duration_s: float | None = None,
+             can_ids: Iterable[int] | None = None, topics: Iterable[str] | None = None,
+             stop: threading.Event | None = None, progress: bool = False,
+             warn: Warn = _no_warn) -> PlayStats:
+    """Send the raw frames of ``path`` on ``buses`` (logical bus -> open ``can.BusABC``) with
+    their recorded spacing divided by ``rate`` (0: as fast as possible), in recording order.
+
+    Frames of buses not in ``buses`` are skipped (counted). ``can_ids`` and ``topics``
+    (globs over ``/can/<bus>``) filter; ``start_s``/``duration_s`` cut a window relative to the
+    log's first message. ``loop`` repeats until ``stop`` is set. A frame the bus refuses
+    (``CanError``: buffer full, bus off) is counted in ``errors`` and playback goes on.
+    """
+    import can
+
+    stats = PlayStats()
+    with readable(path, warn) as src:
+        ctx = read_context(src)
+        pick = _topic_pred(topics)
+        chosen = [b for b in ctx.buses if pick(CAN_TOPIC_PREFIX + b)]
+        if not ctx.buses:
+            raise ReplayError(f"{path}: no raw CAN channels ({CAN_TOPIC_PREFIX}<bus>) to replay"
+                              + (" (empty log)" if ctx.message_count == 0 else ""))
+        unknown = set(buses) - set(ctx.buses)
+        if unknown:
+            raise ReplayError(f"--channel: the log has buses {', '.join(ctx.buses)}, not "
+                              f"{', '.join(sorted(unknown))}")
+        play = [b for b in chosen if b in buses]
+        if not play:
+            raise ReplayError(f"{path}: no bus left to play (log buses {', '.join(ctx.buses)})")
+        start_ns, end_ns = ctx.window(start_s, duration_s)
+        ids = None if can_ids is None else list(can_ids)
+
+        def items():
+            return iter_can_frames(src, buses=play, can_ids=ids, start_ns=start_ns,
+                                   end_ns=end_ns)
+
+        def send(bus: str, msg) -> None:
+            try:
+                buses[bus].send(msg)
+                stats.sent[bus] += 1
+            except can.CanError as exc:
+                stats.errors[f"{bus}: {type(exc).__name__}"] += 1
+
+        _play(ctx, items, send, stats, rate=rate, loop=loop, stop=stop, progress=progress,
+              start_ns=start_ns, end_ns=end_ns, desc="CAN")
+    return stats
+
+
+def sample_types() -> dict[str, type]:
+    """Schema name (qualified dataclass name, as the recorder writes it) -> codec type."""
+    from gateway import codec
+
+    return {f"{t.__module__}.{t.__qualname__}": t for t in codec.TYPES.values()}
+
+
+_KEY_OK = re.compile(r"^[^/*$?#\s][^*$?#\s]*$")
+
+
+def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop: bool = False,
+               start_s: float | None = None, duration_s: float | None = None,
+               topics: Iterable[str] | None = None, stop: threading.Event | None = None,
+               progress: bool = False, wait_s: float = 0.0, warn: Warn = _no_warn) -> PlayStats:
+    """Republish the recorded samples, health, efforts and alerts of ``path`` on their keys
+    (the topic is the key) with their recorded spacing divided by ``rate``.
+
+    Payloads are re-encoded with :mod:`gateway.codec` from the recorded fields, which gives the
+    bytes the gateway published. Publishers block rather than drop (a replay is meant to be
+    complete); ``wait_s`` > 0 first waits up to that long for every publisher to have a
+    matching subscriber. Topics that are not keys (``/can/...``) or not codec types are skipped.
+    """
+    import zenoh
+
+    from gateway import codec
+
+    stats = PlayStats()
+    types_ = sample_types()
+    with readable(path, warn) as src:
+        ctx = read_context(src)
+        pick = _topic_pred(topics)
+        eligible = sorted(t for t, s in ctx.topics.items()
+                          if s in types_ and _KEY_OK.match(t) and pick(t))
+        if not eligible:
+            raise ReplayError(f"{path}: no recorded samples or efforts to publish on zenoh"
+                              + (" (empty log)" if ctx.message_count == 0 else
+                                 " (only raw CAN? use --interface/--channel)"))
+        start_ns, end_ns = ctx.window(start_s, duration_s)
+        wanted = set(eligible)
+        pubs = {}
+        try:
+            for key in eligible:
+                pubs[key] = session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK)
+            if wait_s > 0:
+                deadline = time.monotonic() + wait_s
+                while not all(p.matching_status for p in pubs.values()):
+                    if time.monotonic() >= deadline:
+                        warn(f"no subscriber matched within {wait_s:g} s; publishing anyway")
+                        break
+                    if stop is not None and stop.is_set():
+                        return stats
+                    time.sleep(0.01)
+
+            def items():
+                for topic, schema, m in iter_file_order(src, lambda t, s: t in wanted,
+                                                        start_ns, end_ns):
+                    cls = types_[schema]
+                    fields = _json(src, topic, m.data)
+                    try:
+                        payload = codec.encode(codec.decode(json.dumps(
+                            {"type": cls.__name__, "v": codec.VERSION, **fields})))
+                    except (ValueError, TypeError) as exc:
+                        stats.skipped[f"unencodable: {exc}"[:80]] += 1
+                        continue
+                    yield topic, m.log_time, payload
+
+            def send(key: str, payload: bytes) -> None:
+                pubs[key].put(payload, attachment=str(time.time_ns()).encode())
+                stats.sent[key] += 1
+
+            _play(ctx, items, send, stats, rate=rate, loop=loop, stop=stop, progress=progress,
+                  start_ns=start_ns, end_ns=end_ns, desc="zenoh")
+        finally:
+            for p in pubs.values():
+                with contextlib.suppress(Exception):
+                    p.undeclare()
+    return stats
+
+
+def parse_can_ids(specs: Iterable[str]) -> list[int]:
+    """``["0x200,0x201", "768"]`` -> ids; hex needs ``0x``. ``ValueError`` with the bad item."""
+    out = []
+    for spec in specs:
+        for item in spec.split(","):
+            item = item.strip()
+            if not item:
+                continue
+            try:
+                value = int(item, 0)
+            except ValueError:
+                raise ReplayError(f"--can-id {item!r}: not an integer (hex as 0x200)") from None
+            if not 0 <= value < 1 << 29:
+                raise ReplayError(f"--can-id {item}: outside 0 .. 0x1FFFFFFF")
+            out.append(value)
+    return out
+
+
+__all__ = ["LogContext", "OfflineReport", "PlayStats", "ReplayError", "iter_can_frames",
+           "iter_file_order", "key_scheme", "parse_can_ids", "play_can", "play_zenoh",
+           "read_context", "readable", "replay_offline", "resolve_robot", "session_context"]

@@ -1,0 +1,191 @@
+"""``bsc record``: raw CAN per bus and every zenoh sample into one MCAP file with its context;
+clean stop on SIGTERM; one-line errors."""
+from __future__ import annotations
+
+import base64
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+
+import can
+import pytest
+import zenoh
+
+import robot_description
+from drivers import frames, wire
+from drivers.samples import JointSample, WrenchSample
+from gateway import codec, keys, mcaplog
+from gateway.cli import main
+from gateway.commands.record import REJECTED_TOPIC, Recording
+from gateway.efforts import ThrusterEffort
+from gateway.recorder import Recorder
+from gateway.replay import read_context, session_context
+from gateway.zenoh_config import make_config
+
+from .conftest import REPO
+
+ROBOT = "paper_robot"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _until(cond, timeout_s: float = 30.0) -> bool:
+    """Wait for a condition another thread makes true (synchronisation, not a timing check)."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def test_recording_can_and_zenoh(tmp_path):
+    robot = robot_description.load(ROBOT)
+    prefix = f"bsc-rec-{uuid.uuid4().hex}"
+    path = tmp_path / "s.mcap"
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    names = ["arm0", "spacecraft"]
+    rx = {b: can.Bus(interface="virtual", channel=wire.channel_name(prefix, b),
+                     ignore_config=True) for b in names}
+    tx = {b: can.Bus(interface="virtual", channel=wire.channel_name(prefix, b),
+                     ignore_config=True) for b in names}
+    sent = {b: [] for b in names}
+    samples = [WrenchSample("arm0", 1_000_000 + i, i, (1.0, 2.0, float(i)), (0.5, 0.25, 0.0))
+               for i in range(50)]
+    effort = ThrusterEffort(5, (1.0, 2.0, 3.0), (0.0, 0.0, 0.1), (0.0,) * 3, (0.0,) * 3, 0, 3,
+                            True, ("x",))
+    try:
+        with zenoh.open(make_config(listen=[ep])) as rec_s, \
+                zenoh.open(make_config(connect=[ep])) as pub_s, \
+                Recorder(path) as rec:
+            rec.add_session_context(**session_context(robot))
+            with Recording(rec, rx, rec_s, keys.everything(ROBOT)) as recording:
+                for i in range(200):
+                    b = names[i % 2]
+                    msg = frames.encode_joint(JointSample("arm0/j0", 0, i, 0.1 * i, 0.0), 0) \
+                        if b == "arm0" else can.Message(arbitration_id=0x405, data=bytes([i]) * 8,
+                                                        is_extended_id=False)
+                    tx[b].send(msg)
+                    sent[b].append(bytes(msg.data))
+                pub_w = pub_s.declare_publisher(keys.wrench(ROBOT, "arm0"))
+                pub_e = pub_s.declare_publisher(keys.thruster_effort(ROBOT))
+                assert _until(lambda: pub_w.matching_status and pub_e.matching_status)
+                for s in samples:
+                    pub_w.put(codec.encode(s))
+                pub_e.put(codec.encode(effort))
+                pub_w.put(b"not json at all")                       # undecodable
+                pub_w.put(codec.encode(effort))                     # a second type on one key
+                assert _until(lambda: sum(recording.frames.values()) == 200
+                              and sum(recording.samples.values()) == 51
+                              and sum(recording.rejected.values()) == 2), recording.summary()
+                pub_w.undeclare()
+                pub_e.undeclare()
+            lines = recording.summary()
+    finally:
+        for b in list(rx.values()) + list(tx.values()):
+            b.shutdown()
+    assert rec.stats.dropped == 0
+    assert "CAN frames: 200 (arm0 100, spacecraft 100)" in lines[0]
+    assert "undecodable 1" in lines[2] and "type_conflict 1" in lines[2]
+
+    info = mcaplog.inspect(path)
+    assert info.complete
+    by_topic = {c.topic: c for c in info.channels}
+    assert by_topic["/can/arm0"].schema_name == "bsc.CanFrame"
+    assert by_topic[keys.wrench(ROBOT, "arm0")].schema_name == "drivers.samples.WrenchSample"
+    assert by_topic[keys.thruster_effort(ROBOT)].schema_name == "gateway.efforts.ThrusterEffort"
+    assert by_topic[REJECTED_TOPIC].count == 2
+    for b in names:
+        got = [bytes(m.data) for bb, m in mcaplog.read_can_frames(path, [b])]
+        assert got == sent[b]
+    got = [mcaplog.to_dataclass(WrenchSample, m.data)
+           for m in mcaplog.read_messages(path, [keys.wrench(ROBOT, "arm0")])]
+    assert got == samples
+    rej = [m.data for m in mcaplog.read_messages(path, [REJECTED_TOPIC])]
+    assert {r["reason"] for r in rej} == {"undecodable", "type_conflict"}
+    assert base64.b64decode(next(r for r in rej if r["reason"] == "undecodable")["payload"]) \
+        == b"not json at all"
+    ctx = read_context(path)
+    assert ctx.robot_name == ROBOT and sorted(ctx.buses) == ["arm0", "spacecraft"]
+    assert {"robot.urdf", "dbc/bsc_arm.dbc", "dbc/bsc_spacecraft.dbc"} <= set(ctx.attachments)
+    assert ctx.metadata["zenoh.keys"]["wrench/arm0"] == keys.wrench(ROBOT, "arm0")
+    assert ctx.metadata["bsc.session"]["software"].startswith("bsc ")
+
+
+def _env():
+    return dict(os.environ, OPENBLAS_NUM_THREADS="1",
+                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+def test_sigterm_finishes_the_file(tmp_path):
+    out = tmp_path / "t.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway.cli", "record", "--robot", ROBOT, "--out", str(out),
+         "--interface", "virtual", "--channel", f"bsc-rec-{uuid.uuid4().hex}", "--no-zenoh"],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()          # printed once buses and file are open
+        assert first.startswith("bsc record: robot paper_robot"), (first, proc.stderr.read())
+        proc.send_signal(signal.SIGTERM)
+        rest, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert err == ""
+    assert "CAN frames: 0" in rest and f"wrote {out}" in rest
+    info = mcaplog.inspect(out)
+    assert info.complete
+    assert {"bsc.recording", "bsc.session", "zenoh.keys"} <= set(info.metadata)
+    assert info.metadata["bsc.session"]["robot"] == ROBOT
+
+
+def test_duration_zenoh_and_split_naming(tmp_path, capsys):
+    out = tmp_path / "z.mcap"
+    rc = main(["record", "--robot", ROBOT, "--out", str(out), "--duration", "0.2",
+               "--split-size", "1", "--connect", f"tcp/127.0.0.1:{_free_port()}"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "zenoh samples: 0" in cap.out and "zenoh rejected: 0" in cap.out
+    first = tmp_path / "z_0000.mcap"
+    assert f"wrote {first}" in cap.out
+    assert mcaplog.inspect(first).complete
+    assert json.loads(json.dumps(read_context(first).metadata["bsc.session"]))["robot"] == ROBOT
+
+
+def test_record_errors_are_one_line(tmp_path, read_only_dir, capsys):
+    existing = tmp_path / "e.mcap"
+    existing.write_bytes(b"x")
+    cases = [
+        (["--out", str(read_only_dir / "x.mcap"), "--no-zenoh", "--interface", "virtual",
+          "--channel", "c"], ""),
+        (["--out", str(existing)], "--force"),
+        (["--out", str(tmp_path / "a.mcap"), "--channel", "c"], "--interface"),
+        (["--out", str(tmp_path / "b.mcap"), "--no-zenoh"], "nothing to record"),
+        (["--out", str(tmp_path / "c.mcap"), "--robot", "nope"], "no such robot"),
+        (["--out", str(tmp_path / "d.mcap"), "--duration", "-1"], "--duration"),
+        (["--out", str(tmp_path / "f.mcap"), "--interface", "virtual", "--channel", "a=b"],
+         "--channel"),
+        (["--out", str(tmp_path / "g" / "h.mcap"), "--no-zenoh", "--interface", "virtual",
+          "--channel", "c"], "No such file"),
+    ]
+    for args, message in cases:
+        rc = main(["record", "--robot", ROBOT, *args] if "--robot" not in args
+                  else ["record", *args])
+        err = capsys.readouterr().err
+        assert rc == 2, (args, err)
+        assert err.count("\n") == 1 and err.startswith("bsc record: error: "), (args, err)
+        assert message in err, (args, err)
+    assert existing.read_bytes() == b"x"
+    assert not (tmp_path / "a.mcap").exists()

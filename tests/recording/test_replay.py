@@ -1,0 +1,500 @@
+"""``bsc replay``: offline determinism, live playback onto virtual CAN and loopback zenoh,
+filters, windows, loops, and bad input.
+
+The offline engine is exercised with a stand-in for ``gateway.pipeline.Pipeline`` defined here
+(drivers + a toy estimator that, like the real one, mixes buses: arm efforts use the latest IMU
+sample). The same determinism test runs against the real pipeline when it exists.
+"""
+from __future__ import annotations
+
+import json
+import random
+import socket
+import struct
+import threading
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+
+import robot_description
+from drivers import frames, wire
+from drivers.devices import listeners_for
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
+from gateway import codec, keys, mcaplog
+from gateway import replay as rp
+from gateway.cli import main
+from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.recorder import Recorder
+
+ROBOT = "paper_robot"
+PNG = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + bytes(13) + b"\0\0\0\0"
+
+
+# ----------------------------------------------------------------------------- stand-in pipeline
+
+class StandInPipeline:
+    """The ``gateway.pipeline.Pipeline`` contract with the real drivers and a toy estimator.
+
+    Emits every decoded sample; on each F/T sample a ``JointEfforts`` built from the wrench, the
+    arm's latest joint samples and the LATEST IMU sample (another bus), so the result depends
+    on the order frames of different buses were fed in; on each IMU sample a
+    ``ThrusterEffort``. Times come only from the samples' integer ``t_ns``.
+    """
+
+    def __init__(self, robot, *, model_robot=None, fd=False, emit):
+        self.wire = wire.WireMap.from_robot(robot)
+        self.robot = robot.name
+        self.buses = list(self.wire.buses)
+        self._emit = emit
+        self._listeners = {}
+        for name, spec in self.wire.buses.items():
+            mon, drivers = listeners_for(spec, self._on_sample, fd)
+            self._listeners[name] = [mon, *drivers]
+        self._joints: dict[str, JointSample] = {}
+        self._imu: ImuSample | None = None
+        self._cmd: dict[str, float] = {}
+
+    def feed(self, bus, msg):
+        for listener in self._listeners[bus]:
+            listener.on_message_received(msg)
+
+    def health(self, now_ns):
+        out = []
+        for ls in self._listeners.values():
+            out.append(ls[0].health(now_ns))
+            for d in ls[1:]:
+                out.extend(d.health(now_ns))
+        return out
+
+    def _on_sample(self, s):
+        self._emit(keys.for_sample(self.robot, s), s)
+        if isinstance(s, JointSample):
+            self._joints[s.device] = s
+        elif isinstance(s, TorqueCommand):
+            self._cmd[s.device] = s.torque_nm
+        elif isinstance(s, ImuSample):
+            self._imu = s
+            self._emit(keys.thruster_effort(self.robot), ThrusterEffort(
+                t_ns=s.t_ns, force_n=tuple(100.0 * a for a in s.accel_m_s2),
+                moment_nm=tuple(10.0 * w for w in s.rate_rad_s), commanded_force_n=(0.0,) * 3,
+                commanded_moment_nm=(0.0,) * 3, commanded_t_ns=0, valves=0, good=True))
+        elif isinstance(s, WrenchSample):
+            spec = self.wire.buses[s.device]
+            devs = [f"{s.device}/{j}" for j in spec.joints]
+            js = [self._joints.get(d) for d in devs]
+            wz = self._imu.rate_rad_s[2] if self._imu is not None else 0.0
+            full = tuple(s.torque_nm[i % 3] * (i + 1) + 0.37 * (j.rate_rad_s if j else 0.0)
+                         + wz / 3.0 for i, j in enumerate(js))
+            self._emit(keys.joint_efforts(self.robot, s.device), JointEfforts(
+                arm=s.device, t_ns=s.t_ns, joints=tuple(devs), full_nm=full,
+                simplified_nm=tuple(s.torque_nm[i % 3] for i in range(len(devs))),
+                commanded_nm=tuple(self._cmd.get(d, 0.0) for d in devs), commanded_t_ns=0,
+                rate_rad_s=tuple(j.rate_rad_s if j else 0.0 for j in js),
+                good=all(js) and self._imu is not None,
+                flags=() if all(js) and self._imu is not None else ("warmup",)))
+
+
+# ----------------------------------------------------------------------------- sessions
+
+def synthetic_frames(robot, n_ms: int, seed: int = 1):
+    """``(bus, can.Message)`` in ARRIVAL order for ``n_ms`` ms of a live-like session.
+
+    Timestamps are wall-clock floats with sub-nanosecond digits (as python-can gives them),
+    and the spacecraft bus is fed 0.7 ms late relative to the arm buses (two notifier threads),
+    so arrival order is not log-time order.
+    """
+    rnd = random.Random(seed)
+    wm = wire.WireMap.from_robot(robot)
+    base = 1_767_000_000.0 + rnd.random()
+    out = []
+    late = []
+    for k in range(n_ms):
+        t = base + k * 1e-3
+        step = []
+        for arm, spec in wm.buses.items():
+            if spec.arm is None:
+                continue
+            ts = t + rnd.random() * 2e-4
+            for i, j in enumerate(spec.joints):
+                step.append((arm, frames.encode_joint(JointSample(
+                    f"{arm}/{j}", 0, k, rnd.uniform(-3, 3), rnd.uniform(-1, 1)), i), ts))
+            if k % 2 == 0:
+                cmds = [TorqueCommand(f"{arm}/{j}", 0, k // 2, rnd.uniform(-5, 5))
+                        for j in spec.joints]
+                step += [(arm, m, ts) for m in frames.encode_torque_commands(cmds)]
+            step += [(arm, m, ts + 1e-5) for m in frames.encode_wrench(WrenchSample(
+                arm, 0, k, tuple(rnd.uniform(-50, 50) for _ in range(3)),
+                tuple(rnd.uniform(-10, 10) for _ in range(3))))]
+        sc = []
+        if k % 2 == 0:
+            imu = ImuSample(0, k // 2, (1.0, 0.0, 0.0, 0.0),
+                            tuple(rnd.uniform(-0.5, 0.5) for _ in range(3)),
+                            tuple(rnd.uniform(-0.1, 0.1) for _ in range(3)))
+            sc += [(wire.SPACECRAFT_BUS, m, t) for m in frames.encode_imu(imu, time_us=k * 1000)]
+        if k % 10 == 0:
+            sc += [(wire.SPACECRAFT_BUS, m, t) for m in frames.encode_thruster(ThrusterCommand(
+                0, k // 10, (1.0, 0.0, 0.0), (0.0, 0.0, 0.1), valves=5))]
+        for bus, m, ts in step + late:
+            m.timestamp = ts + rnd.random() * 1e-9
+            out.append((bus, m))
+        late = sc            # arrives after the next step's arm frames, with an older stamp
+    for bus, m, ts in late:
+        m.timestamp = ts
+        out.append((bus, m))
+    return out
+
+
+def record_live(path: Path, robot, frame_list, pipeline_cls=StandInPipeline):
+    """What the live gateway does: record each frame, then feed it, in arrival order; every
+    emit recorded under its key. Returns ``[(key, codec payload)]`` of the emits."""
+    emitted = []
+    with Recorder(path, queue_size=1 << 22) as rec:
+        rec.add_session_context(**rp.session_context(robot, extra={"mode": "test live"}))
+
+        def emit(key, obj):
+            emitted.append((key, codec.encode(obj)))
+            assert rec.record(key, obj)
+
+        pipe = pipeline_cls(robot, emit=emit)
+        for bus, msg in frame_list:
+            assert rec.record_can(bus, msg)
+            pipe.feed(bus, msg)
+        if hasattr(pipe, "flush"):              # the live gateway flushes when it stops
+            pipe.flush()
+    assert rec.stats.dropped == 0
+    return emitted
+
+
+def efforts_by_topic(path: Path) -> dict[str, list[bytes]]:
+    """Raw MCAP message bytes of every effort channel, in file order."""
+    out: dict[str, list[bytes]] = {}
+    for topic, _, m in rp.iter_file_order(path, lambda t, s: "/efforts/" in t):
+        out.setdefault(topic, []).append(bytes(m.data))
+    return out
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return robot_description.load(ROBOT)
+
+
+@pytest.fixture(scope="module")
+def session(robot, tmp_path_factory):
+    """A live-recorded session: 600 ms, about 7 k frames."""
+    path = tmp_path_factory.mktemp("live") / "live.mcap"
+    fl = synthetic_frames(robot, 600)
+    emitted = record_live(path, robot, fl)
+    return path, fl, emitted
+
+
+@pytest.fixture
+def standin(monkeypatch):
+    monkeypatch.setattr(rp, "_default_pipeline_factory", lambda: StandInPipeline)
+
+
+# ----------------------------------------------------------------------------- offline
+
+def test_offline_replay_efforts_are_byte_identical(session, robot, tmp_path):
+    path, fl, emitted = session
+    report = rp.replay_offline(path, tmp_path / "out", pipeline_factory=StandInPipeline)
+    live = efforts_by_topic(path)
+    replayed = efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME)
+    assert set(live) == {keys.joint_efforts(ROBOT, "arm0"), keys.joint_efforts(ROBOT, "arm1"),
+                         keys.thruster_effort(ROBOT)}
+    assert replayed == live
+    n_eff = sum(len(v) for v in live.values())
+    assert report.frames_in == len(fl) and report.efforts == n_eff > 1000
+    assert 0 < report.good_efforts < report.efforts          # warm-up ones are not good
+    assert report.samples == sum(1 for k, _ in emitted if "/sensors/" in k or "/commands/" in k)
+    # every other emitted payload too, in order
+    got = [(t, codec.encode(mcaplog.to_dataclass(codec.TYPES[s.rsplit(".", 1)[1]],
+                                                 json.loads(m.data))))
+           for t, s, m in rp.iter_file_order(tmp_path / "out" / rp.OUTPUT_NAME,
+                                             lambda t, s: "/health/" not in t)]
+    assert got == [(k, p) for k, p in emitted if "/health/" not in k]
+    saved = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())
+    assert saved["frames_in"] == len(fl) and saved["efforts"] == n_eff
+    assert saved["speed_x_realtime"] > 0 and saved["recorder"]["dropped"] == 0
+
+
+def test_log_time_order_would_not_be_deterministic(session, robot):
+    """The check above can fail: feeding the same frames in log-time order (not the order they
+    were recorded in) changes the efforts, because arm efforts use the latest IMU sample."""
+    path, fl, _ = session
+    ours, other = [], []
+    for order, sink in ((rp.iter_can_frames(path), ours),
+                        (((b, 0, m) for b, m in mcaplog.read_can_frames(path)), other)):
+        pipe = StandInPipeline(robot, emit=lambda k, o, sink=sink: sink.append(codec.encode(o))
+                               if isinstance(o, JointEfforts) else None)
+        for bus, _, msg in order:
+            pipe.feed(bus, msg)
+    assert len(ours) == len(other) > 0
+    assert ours != other
+
+
+def test_replayed_frames_keep_their_nanosecond_times(session):
+    path, fl, _ = session
+    got = [(b, round(m.timestamp * 1e9), bytes(m.data)) for b, _, m in rp.iter_can_frames(path)]
+    assert got == [(b, round(m.timestamp * 1e9), bytes(m.data)) for b, m in fl]
+
+
+def test_offline_replay_with_the_real_pipeline(robot, tmp_path):
+    pipeline = pytest.importorskip("gateway.pipeline")
+    path = tmp_path / "live.mcap"
+    record_live(path, robot, synthetic_frames(robot, 400, seed=7), pipeline.Pipeline)
+    report = rp.replay_offline(path, tmp_path / "out")        # the default factory: the real one
+    live = efforts_by_topic(path)
+    assert sum(len(v) for v in live.values()) > 0
+    assert efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME) == live
+    assert report.efforts == sum(len(v) for v in live.values())
+
+
+def test_offline_cli_filters_and_report(session, tmp_path, capsys, standin):
+    path, fl, _ = session
+    out = tmp_path / "out"
+    rc = main(["replay", str(path), "--out", str(out), "--quiet", "--topic", "/can/arm*",
+               "--start", "0.1", "--duration", "0.2"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    t0 = min(round(m.timestamp * 1e9) for _, m in fl)
+    lo, hi = t0 + 100_000_000, t0 + 300_000_000
+    want = [m for b, m in fl if b != "spacecraft" and lo <= round(m.timestamp * 1e9) < hi]
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames_in"] == len(want)
+    assert "frames" in cap.out and "x real time" in cap.out and "report.json" in cap.out
+    assert not any("/thrusters" in k or "/imu" in k for k in report["by_key"]
+                   if "/health/" not in k)
+    # an existing output needs --force
+    rc = main(["replay", str(path), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "--force" in err
+    assert main(["replay", str(path), "--out", str(out), "--quiet", "--force",
+                 "--can-id", "0x200,0x201"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames_in"] == sum(1 for _, m in fl if m.arbitration_id in (0x200, 0x201))
+
+
+def test_offline_without_a_pipeline_is_one_line(session, tmp_path, capsys, monkeypatch):
+    def missing():
+        raise rp.ReplayError("offline replay needs gateway.pipeline (test)")
+
+    monkeypatch.setattr(rp, "_default_pipeline_factory", missing)
+    rc = main(["replay", str(session[0]), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "gateway.pipeline" in err
+
+
+# ----------------------------------------------------------------------------- live CAN
+
+def _drain(bus) -> list[can.Message]:
+    out = []
+    while (m := bus.recv(timeout=0)) is not None:
+        out.append(m)
+    return out
+
+
+def _rx(prefix: str, buses):
+    return {b: can.Bus(interface="virtual", channel=wire.channel_name(prefix, b),
+                       ignore_config=True) for b in buses}
+
+
+def test_live_can_filtered_in_order_with_scaled_timing(session, tmp_path, capsys):
+    path, fl, _ = session
+    prefix = f"bsc-replay-{uuid.uuid4().hex}"
+    rx = _rx(prefix, ["arm0", "arm1", "spacecraft"])
+    try:
+        rate = 2.0
+        rc = main(["replay", str(path), "--interface", "virtual", "--channel", prefix,
+                   "--rate", str(rate), "--can-id", "0x200,0x300", "--can-id", "0x421",
+                   "--topic", "/can/arm0", "--topic", "/can/spacecraft", "--quiet"])
+        cap = capsys.readouterr()
+        assert rc == 0, cap.err
+        got = {b: _drain(bus) for b, bus in rx.items()}
+    finally:
+        for bus in rx.values():
+            bus.shutdown()
+    for b in ("arm0", "spacecraft"):
+        want = [(m.arbitration_id, bytes(m.data)) for bb, m in fl
+                if bb == b and m.arbitration_id in (0x200, 0x300, 0x421)]
+        assert [(m.arbitration_id, bytes(m.data)) for m in got[b]] == want
+        assert len(want) > 100
+    assert got["arm1"] == []
+    sent = [m for b in ("arm0", "spacecraft") for b2, m in fl
+            if b2 == b and m.arbitration_id in (0x200, 0x300, 0x421)]
+    span = max(m.timestamp for m in sent) - min(m.timestamp for m in sent)
+    stamps = [m.timestamp for b in ("arm0", "spacecraft") for m in got[b]]
+    took = max(stamps) - min(stamps)
+    assert took >= 0.8 * span / rate, (took, span)
+    assert took <= span / rate + 30.0
+    assert "sent frames" in cap.out
+
+
+def test_live_can_window_and_bus_map(session, tmp_path, capsys):
+    path, fl, _ = session
+    ch = f"bsc-replay-{uuid.uuid4().hex}"
+    rx = can.Bus(interface="virtual", channel=ch, ignore_config=True)
+    try:
+        rc = main(["replay", str(path), "--interface", "virtual", "--channel", f"arm1={ch}",
+                   "--rate", "0", "--start", "0.25", "--duration", "0.1", "--quiet"])
+        assert rc == 0, capsys.readouterr().err
+        got = _drain(rx)
+    finally:
+        rx.shutdown()
+    t0 = min(round(m.timestamp * 1e9) for _, m in fl)
+    want = [bytes(m.data) for b, m in fl if b == "arm1"
+            and t0 + 250_000_000 <= round(m.timestamp * 1e9) < t0 + 350_000_000]
+    assert [bytes(m.data) for m in got] == want and len(want) > 100
+
+
+def test_live_can_loop_until_stopped(session):
+    path, fl, _ = session
+    ch = f"bsc-replay-{uuid.uuid4().hex}"
+    want = [bytes(m.data) for b, m in fl if b == "spacecraft" and m.arbitration_id == 0x182]
+    stop = threading.Event()
+    got = []
+
+    class Until(can.Listener):
+        def on_message_received(self, msg):
+            got.append(bytes(msg.data))
+            if len(got) >= 2 * len(want) + 3:
+                stop.set()
+
+    with can.Bus(interface="virtual", channel=ch, ignore_config=True) as tx, \
+            can.Bus(interface="virtual", channel=ch, ignore_config=True) as rx:
+        notifier = can.Notifier(rx, [Until()], timeout=0.05)
+        try:
+            stats = rp.play_can(path, {"spacecraft": tx}, rate=0, loop=True,
+                                can_ids=[0x182], stop=stop)
+        finally:
+            notifier.stop()
+    assert stats.loops >= 2 and stats.interrupted
+    n = len(got)
+    assert got == (want * (n // len(want) + 1))[:n]
+
+
+# ----------------------------------------------------------------------------- live zenoh
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_live_zenoh_payloads_byte_identical(session, capsys):
+    import zenoh
+
+    from gateway.zenoh_config import make_config
+
+    path, _, emitted = session
+    want = [(k, p) for k, p in emitted if "/efforts/" in k or k.endswith("/sensors/imu")]
+    got, done = [], threading.Event()
+
+    def on_sample(sample):
+        got.append((str(sample.key_expr), sample.payload.to_bytes()))
+        if len(got) >= len(want):
+            done.set()
+
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    with zenoh.open(make_config(listen=[ep])) as sub_s:
+        sub = sub_s.declare_subscriber(f"bsc/{ROBOT}/**", on_sample)
+        try:
+            rc = main(["replay", str(path), "--zenoh", "--connect", ep, "--rate", "0",
+                       "--wait", "30", "--quiet", "--topic", "bsc/*/efforts/**",
+                       "--topic", "*/sensors/imu"])
+            cap = capsys.readouterr()
+            assert rc == 0, cap.err
+            assert done.wait(30), f"got {len(got)} of {len(want)}"
+        finally:
+            sub.undeclare()
+    assert "warning" not in cap.err
+    for key in {k for k, _ in want}:
+        assert [p for k, p in got if k == key] == [p for k, p in want if k == key], key
+    assert sorted(got) == sorted(want)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+def _foreign_mcap(path: Path) -> None:
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="someone else")
+        sid = w.register_schema("sensor_msgs/Image", "ros2msg", b"uint8[] data")
+        cid = w.register_channel("/camera", "cdr", sid)
+        w.add_message(cid, 1, b"\x00\x01\x02", 1)
+        w.finish()
+
+
+def _empty_log(path: Path) -> None:
+    with Recorder(path):
+        pass
+
+
+BAD = {
+    "missing": (lambda p, good: None, "no such file"),
+    "empty": (lambda p, good: p.write_bytes(b""), "empty file"),
+    "png": (lambda p, good: p.write_bytes(PNG), "not an MCAP file"),
+    "text": (lambda p, good: p.write_text("t,v\n1,2\n"), "not an MCAP file"),
+    "half header": (lambda p, good: p.write_bytes(good[:20]), "truncated before"),
+    "foreign mcap": (lambda p, good: _foreign_mcap(p), "no raw CAN channels"),
+    "no messages": (lambda p, good: _empty_log(p), "empty log"),
+    "directory": (lambda p, good: p.mkdir(), "directory"),
+}
+
+
+@pytest.mark.parametrize("mode", ["offline", "can", "zenoh"])
+@pytest.mark.parametrize("name", list(BAD))
+def test_bad_files_give_one_line(name, mode, session, tmp_path, capsys, standin):
+    make, message = BAD[name]
+    path = tmp_path / "bad.mcap"
+    make(path, session[0].read_bytes())
+    args = {"offline": ["--out", str(tmp_path / "o")],
+            "can": ["--interface", "virtual", "--channel", f"x-{uuid.uuid4().hex}"],
+            "zenoh": ["--zenoh"]}[mode]
+    rc = main(["replay", str(path), *args, "--quiet"])
+    cap = capsys.readouterr()
+    if mode == "zenoh" and message == "no raw CAN channels":
+        message = "no recorded samples"
+    assert rc == 2, cap
+    assert cap.err.count("\n") == 1 and cap.err.startswith("bsc replay: error: "), cap.err
+    assert message in cap.err and "Traceback" not in cap.err
+
+
+def test_truncated_log_is_recovered_with_a_warning(session, tmp_path, capsys, standin):
+    path, fl, _ = session
+    cut = tmp_path / "cut.mcap"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    rc = main(["replay", str(cut), "--out", str(tmp_path / "o"), "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert cap.err.count("\n") == 1 and "truncated" in cap.err and "recovered" in cap.err
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    rec = mcaplog.recover(cut, tmp_path / "r.mcap")
+    n = sum(1 for _ in mcaplog.read_can_frames(rec.output))
+    assert report["source_recovered"] and report["frames_in"] == n and 0 < n < len(fl)
+
+
+def test_read_only_output_and_bad_options(session, tmp_path, read_only_dir, capsys, standin):
+    path = str(session[0])
+    cases = [
+        (["--out", str(read_only_dir / "o")], ""),
+        (["--out", str(tmp_path / "a"), "--can-id", "zz"], "--can-id"),
+        (["--out", str(tmp_path / "b"), "--rate", "-1"], "--rate"),
+        (["--out", str(tmp_path / "c"), "--duration", "0"], "--duration"),
+        (["--out", str(tmp_path / "d"), "--zenoh"], "one mode"),
+        ([], "one mode"),
+        (["--interface", "virtual"], "--channel"),
+        (["--interface", "virtual", "--channel", "nope=x"], "unknown nope"),
+        (["--out", str(tmp_path / "e"), "--robot", "no_such_robot"], "no such robot"),
+        (["--out", str(tmp_path / "f"), "--topic", "/can/none"], "--topic"),
+        (["--zenoh", "--loop", "--rate", "0"], "--loop"),
+    ]
+    for args, message in cases:
+        rc = main(["replay", path, *args, "--quiet"])
+        err = capsys.readouterr().err
+        assert rc == 2, (args, err)
+        assert err.count("\n") == 1 and message in err and "Traceback" not in err, (args, err)
