@@ -67,6 +67,20 @@ IMU_FAULT = 0x0003
 HEARTBEAT_FAULT_STATE = 0x80
 
 
+UDP_BASE_PORT = 43113              # python-can udp_multicast's default port, first bus
+
+
+def udp_port(bus_index: int) -> int:
+    """The UDP port of bus ``bus_index`` (WireMap order) over python-can ``udp_multicast``.
+
+    The interface binds its port on every address, and Linux hands a socket the datagrams of
+    every group joined on the host for that port (``IP_MULTICAST_ALL``): buses sharing a port
+    would hear each other whatever their groups. So each bus gets its own port, from python-can's
+    default up. The simulator's firmware and the gateway use the same rule.
+    """
+    return UDP_BASE_PORT + bus_index
+
+
 class WireError(ValueError):
     """The wire contract cannot describe this robot, or a DBC disagrees with the code."""
 

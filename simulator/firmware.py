@@ -40,10 +40,10 @@ from typing import Callable, Mapping
 
 import can
 
+from drivers.wire import udp_port  # noqa: F401 - part of this module's API
 from drivers import frames, wire
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 
-UDP_BASE_PORT = 43113          # python-can's udp_multicast default; bus i of a robot uses base + i
 SEND_TIMEOUT_S = 1.0
 HEARTBEAT_OPERATIONAL = 0x05
 MAX_JUMP = 126                 # a larger skip would read as "late" (8-bit counters, half range)
@@ -439,17 +439,6 @@ class BusSet(dict):
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def udp_port(bus_index: int) -> int:
-    """The UDP port of bus ``bus_index`` (WireMap order) over python-can ``udp_multicast``.
-
-    The interface binds its port on every address, and Linux hands a socket the datagrams of
-    every group joined on the host for that port (``IP_MULTICAST_ALL``): buses sharing a port
-    would hear each other whatever their groups. So each bus gets its own port, from python-can's
-    default up. The receiving side must use the same rule.
-    """
-    return UDP_BASE_PORT + bus_index
 
 
 def bus_channels(robot, channel: str | Mapping[str, str]) -> dict[str, str]:

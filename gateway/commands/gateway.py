@@ -79,8 +79,12 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with contextlib.ExitStack() as stack:
         buses = {}
-        for name, ch in chans.items():
+        for i, (name, ch) in enumerate(chans.items()):
             kw = {"fd": True} if args.fd else {}
+            if args.interface == "udp_multicast":
+                from drivers.wire import udp_port
+
+                kw["port"] = udp_port(i)
             buses[name] = stack.enter_context(can.Bus(interface=args.interface, channel=ch, ignore_config=True, **kw))
         session = stack.enter_context(zenoh.open(config_from_args(args)))
         rec = None
