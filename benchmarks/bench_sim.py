@@ -5,6 +5,12 @@
 Prints the real-time factor of the whole loop (physics, controller, thrusters, sensors, truth)
 and, as anchors measured in the same run, the cost of the physics step alone and of one
 Pinocchio ABA call, so the figure can be read as a ratio on a shared, noisy machine.
+
+``Simulation.run()`` is timed as users run it: every step runs the closed loop (encoders and
+joint controller at their rate, base controller and thruster chain per base period, the RK4
+physics step with friction) and records the raw truth; the sensor models and derived truth are
+evaluated over blocks of recorded steps inside the same call (see simulator/engine.py), and are
+included in the time.
 """
 from __future__ import annotations
 

@@ -37,14 +37,15 @@ class Target:
             grasp += [grasp[-1] + step * (k + 1) for k in range(n_arms - len(grasp))]
         self.phase = np.radians(grasp[:n_arms])
 
-    def grasp_points(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Positions and velocities (n_arms, 3) of the grasp points, inertial frame."""
-        ang = self.phase + self.omega * t
+    def grasp_points(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities (n_arms, 3) of the grasp points, inertial frame; for an
+        array of K times, (K, n_arms, 3)."""
+        ang = self.phase + self.omega * np.asarray(t, dtype=float)[..., None]
         c, s = self.radius * np.cos(ang), self.radius * np.sin(ang)
-        p = np.empty((len(ang), 3))
-        p[:, 0], p[:, 1], p[:, 2] = c, s, 0.0
+        p = np.empty(ang.shape + (3,))
+        p[..., 0], p[..., 1], p[..., 2] = c, s, 0.0
         v = np.empty_like(p)
-        v[:, 0], v[:, 1], v[:, 2] = -self.omega * s, self.omega * c, 0.0
+        v[..., 0], v[..., 1], v[..., 2] = -self.omega * s, self.omega * c, 0.0
         return p + self.center, v
 
 
@@ -86,10 +87,14 @@ class Controller:
         self.model, self.data = robot.model, robot.model.createData()
         self.kp, self.kd, self.damp = cfg.kp, cfg.kd, cfg.joint_damping
         self.limit = robot.effort_limit
+        self._neg_limit = -self.limit
         self.x0: np.ndarray | None = None
         self.base_p0: np.ndarray | None = None
         self.base_R0: np.ndarray | None = None
         self.iv = [np.array(a.iv) for a in robot.arms]
+        self._nv = robot.model.nv
+        self._J = np.zeros((len(robot.arms), 3, self._nv))    # end-effector position Jacobians
+        self._x = np.empty((len(robot.arms), 3))
 
     def start(self, q: np.ndarray) -> None:
         """Latch the initial end-effector positions and the base pose to hold."""
@@ -98,29 +103,38 @@ class Controller:
         M = pin.XYZQUATToSE3(q[:7])
         self.base_p0, self.base_R0 = M.translation.copy(), M.rotation.copy()
 
-    def desired(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+    def desired(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector references and their rates (n_arms, 3), inertial; (K, n_arms, 3) for K times."""
         g, gd = self.target.grasp_points(t)
-        s, sd = quintic(t, self.cfg.approach_s)
+        if np.ndim(t) == 0:
+            s, sd = quintic(t, self.cfg.approach_s)
+        else:
+            s, sd = (np.array(c)[:, None, None] for c in zip(*(quintic(x, self.cfg.approach_s) for x in t)))
         return (1 - s) * self.x0 + s * g, sd * (g - self.x0) + s * gd
 
     def joint_torques(self, t: float, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Motor torque commands (saturated), end-effector positions and their desired values."""
-        model, data = self.model, self.data
         xd, xdd = self.desired(t)
-        pin.computeJointJacobians(model, data, q)      # also runs forward kinematics
-        pin.updateFramePlacements(model, data)
-        tau = np.empty(model.nv - 6)
-        x = np.empty_like(xd)
-        for k, arm in enumerate(self.robot.arms):
-            J = pin.getFrameJacobian(model, data, arm.ee_frame, pin.LOCAL_WORLD_ALIGNED)[:3]
-            iv = self.iv[k]
-            x[k] = data.oMf[arm.ee_frame].translation
-            xdot = J @ v                                  # full velocity, base motion included
-            Ja = J[:, iv]
-            force = self.kp * (xd[k] - x[k]) + self.kd * (xdd[k] - xdot)
-            tau[iv - 6] = Ja.T @ force - self.damp * v[iv]
-        np.clip(tau, -self.limit, self.limit, out=tau)
+        tau, x = self.torques(xd, xdd, q, v)
         return tau, x, xd
+
+    def torques(self, xd: np.ndarray, xdd: np.ndarray, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Motor torque commands (saturated) and end-effector positions for references (p, 3).
+
+        All arms at once: each end effector's position Jacobian has zero columns for the other
+        arms' joints, so ``J_all^T force_all`` over the stacked arms is each arm's ``J^T force``.
+        """
+        model, data, J, x = self.model, self.data, self._J, self._x
+        pin.computeJointJacobians(model, data, q)      # also runs forward kinematics
+        for k, arm in enumerate(self.robot.arms):
+            # getFrameJacobian also updates data.oMf of that frame
+            J[k] = pin.getFrameJacobian(model, data, arm.ee_frame, pin.LOCAL_WORLD_ALIGNED)[:3]
+            x[k] = data.oMf[arm.ee_frame].translation
+        Jf = J.reshape(-1, self._nv)
+        xdot = (Jf @ v).reshape(x.shape)                 # full velocity, base motion included
+        force = self.kp * (xd - x) + self.kd * (xdd - xdot)
+        tau = force.reshape(-1) @ Jf[:, 6:] - self.damp * v[6:]
+        return np.minimum(np.maximum(tau, self._neg_limit), self.limit), x.copy()
 
     def base_wrench(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Demanded thruster wrench (body frame, about C) holding the initial base pose."""

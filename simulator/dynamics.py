@@ -37,17 +37,31 @@ class Friction:
 
 
 class Dynamics:
-    """Owns the model and scratch data; ``q, v`` are the state, advanced in place by ``step``."""
+    """Owns the model and scratch data; ``q, v`` are the state, advanced in place by ``step``.
+
+    After a step, ``data_start`` holds Pinocchio's quantities at the state the step started
+    from, computed by its first ABA call: in particular ``data_start.f[j]``, the spatial force
+    that joint ``j`` transmits to its subtree (local frame of ``j``), equal to what RNEA gives
+    for ``(q, v, a)`` with the returned acceleration (the truth of the F/T sensors).
+    """
 
     def __init__(self, model: pin.Model, friction: Friction, dt: float):
         self.model, self.data = model, model.createData()
+        self.data_start = model.createData()
         self.friction = friction
         self.dt = dt
         self.nj = model.nv - 6
         self.q = pin.neutral(model)
         self.v = np.zeros(model.nv)
         self.stuck = np.zeros(self.nj, dtype=bool)
+        self._any_stuck = False
         self.tau_friction = np.zeros(self.nj)
+        # step sizes as arrays: array * array is cheaper than scalar * array on tiny arrays
+        self._h2, self._h = np.full(model.nv, 0.5 * dt), np.full(model.nv, dt)
+        # RK4 weights (dt/6) [1 2 2 1] on the stacked stage rates [kq1..kq4, kv1..kv4]
+        c1 = dt / 6.0
+        self._weights = np.zeros((2, 8))
+        self._weights[0, :4] = self._weights[1, 4:] = (c1, 2.0 * c1, 2.0 * c1, c1)
 
     # -- the step ---------------------------------------------------------------------------
     def step(self, base_wrench: np.ndarray, tau_motor: np.ndarray) -> np.ndarray:
@@ -56,91 +70,91 @@ class Dynamics:
         ``base_wrench``: thruster wrench on the spacecraft (body frame, force through C, moment
         about C). ``tau_motor``: motor torques of the actuated joints, N m.
         """
-        model, data, q0, v0, dt = self.model, self.data, self.q, self.v, self.dt
-        tau = np.empty(model.nv)
-        tau[:6] = base_wrench
-        tau[6:] = tau_motor
+        model, data, q0, v0 = self.model, self.data, self.q, self.v
+        aba, integrate, q_rate = pin.aba, pin.integrate, _q_rate
+        h2, h = self._h2, self._h
+        tau = np.concatenate((base_wrench, tau_motor))
         tau[6:] += self._friction(tau)
 
-        def accel(q, v):
-            return pin.aba(model, data, q, v, tau)
-
-        def theta_rate(theta, v):
-            # dexp^-1(theta) v on the free-flyer block, to first order in theta (theta ~ dt v:
-            # the next term is ~1e-9 relative at 1 kHz); revolute joints are Euclidean.
-            out = v.copy()
-            out[:6] += 0.5 * pin.Motion(theta[:6]).cross(pin.Motion(v[:6])).vector
-            return out
-
-        a1 = accel(q0, v0)
-        k1q, k1v = v0, a1
-        th = 0.5 * dt * k1q
-        v2 = v0 + 0.5 * dt * k1v
-        k2q, k2v = theta_rate(th, v2), accel(pin.integrate(model, q0, th), v2)
-        th = 0.5 * dt * k2q
-        v3 = v0 + 0.5 * dt * k2v
-        k3q, k3v = theta_rate(th, v3), accel(pin.integrate(model, q0, th), v3)
-        th = dt * k3q
-        v4 = v0 + dt * k3v
-        k4q, k4v = theta_rate(th, v4), accel(pin.integrate(model, q0, th), v4)
-        theta = (dt / 6.0) * (k1q + 2.0 * k2q + 2.0 * k3q + k4q)
-        self.q = pin.integrate(model, q0, theta)
-        self.v = v0 + (dt / 6.0) * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        a1 = aba(model, self.data_start, q0, v0, tau)
+        th = h2 * v0
+        v2 = v0 + h2 * a1
+        k2q = q_rate(th, v2)
+        k2v = aba(model, data, integrate(model, q0, th), v2, tau)
+        th = h2 * k2q
+        v3 = v0 + h2 * k2v
+        k3q = q_rate(th, v3)
+        k3v = aba(model, data, integrate(model, q0, th), v3, tau)
+        th = h * k3q
+        v4 = v0 + h * k3v
+        k4q = q_rate(th, v4)
+        k4v = aba(model, data, integrate(model, q0, th), v4, tau)
+        # (dt/6) (k1 + 2 k2 + 2 k3 + k4) for theta and v at once
+        theta, dv = self._weights @ np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v))
+        self.q = integrate(model, q0, theta)
+        self.v = v0 + dv
         return a1
 
     # -- friction ---------------------------------------------------------------------------
     def _friction(self, tau_applied: np.ndarray) -> np.ndarray:
         """Friction torques held over the next step, given all applied generalized forces."""
-        fr, nj, dt = self.friction, self.nj, self.dt
+        fr, dt = self.friction, self.dt
         vj = self.v[6:]
-        tau_f = -fr.coulomb_nm * np.sign(vj) - fr.viscous_nms * vj
-        if not fr.static_nm.any():
+        # per-joint scalars in Python floats: numpy calls on 2-9 element arrays cost more
+        vl = vj.tolist()
+        sgn = [(v > 0.0) - (v < 0.0) for v in vl]        # np.sign
+        static = fr.static_nm.tolist()
+        tau_f = np.array([-c * s - d * v for c, s, d, v in zip(fr.coulomb_nm.tolist(), sgn,
+                                                                fr.viscous_nms.tolist(), vl)])
+        if not any(static):
             self.tau_friction = tau_f
-            self.stuck[:] = False
+            if self._any_stuck:
+                self.stuck[:] = False
+                self._any_stuck = False
             return tau_f
         model, data = self.model, self.data
         Minv = pin.computeMinverse(model, data, self.q)    # full symmetric matrix in Pinocchio 4
-        diag = Minv.diagonal()[6:]
         # candidates: friction at breakaway can stop the joint within this step
-        cand = np.abs(vj) <= fr.static_nm * diag * (1.5 * dt)
-        cand &= fr.static_nm > 0
-        if not cand.any():
+        reach = 1.5 * dt
+        S = [i for i, (v, s, d) in enumerate(zip(vl, static, Minv.diagonal()[6:].tolist()))
+             if abs(v) <= s * d * reach and s > 0]
+        if not S:
             self.tau_friction = tau_f
-            self.stuck[:] = False
+            if self._any_stuck:
+                self.stuck[:] = False
+                self._any_stuck = False
             return tau_f
         nle = pin.nonLinearEffects(model, data, self.q, self.v)
-        Mj = Minv[6:, :]                          # rows of the actuated joints
-        a_free = Mj @ (tau_applied - nle)         # joint accelerations without friction
-        S = np.flatnonzero(cand)
-        slip_dir = np.sign(vj)
-        for _ in range(nj + 1):
-            if S.size == 0:
-                break
-            tau_o = -fr.coulomb_nm * slip_dir - fr.viscous_nms * vj
-            tau_o[S] = 0.0
-            a = a_free + Mj[:, 6:] @ tau_o
+        Mjj = Minv[6:, 6:]
+        a_free = Minv[6:, :] @ (tau_applied - nle)     # joint accelerations without friction
+        Ml = Mjj.tolist()
+        coulomb, viscous = fr.coulomb_nm.tolist(), fr.viscous_nms.tolist()
+        slip_dir = list(sgn)
+        while S:                                  # removes one joint per pass
+            tau_o = [-c * s - d * v for c, s, d, v in zip(coulomb, slip_dir, viscous, vl)]
+            for i in S:
+                tau_o[i] = 0.0
+            a = (a_free + Mjj @ np.array(tau_o)).tolist()
             # friction on S that makes v_S(t+dt) = 0: v_S + dt (a_S + Minv_SS f_S) = 0
-            rhs = vj[S] / dt + a[S]
-            if S.size == 1:
-                f_S = -rhs / Minv[6 + S[0], 6 + S[0]]
-            else:
-                f_S = -np.linalg.solve(Minv[np.ix_(6 + S, 6 + S)], rhs)
-            over = np.abs(f_S) > fr.static_nm[S]
-            if not over.any():
-                tau_f = tau_o
-                tau_f[S] = f_S
+            f_S = [-x for x in _solve_spd(Ml, S, [vl[i] / dt + a[i] for i in S])]
+            excess = [abs(f) - static[i] for f, i in zip(f_S, S)]
+            worst = max(excess)
+            if worst <= 0.0:
+                for i, f in zip(S, f_S):
+                    tau_o[i] = f
+                tau_f = np.array(tau_o)
                 break
             # the joint with the largest excess breaks away, in the direction it is pushed
-            k = np.argmax(np.abs(f_S) - fr.static_nm[S])
+            k = excess.index(worst)
             i = S[k]
-            slip_dir[i] = np.sign(vj[i]) if vj[i] != 0 else -np.sign(f_S[k])
-            S = np.delete(S, k)
-        else:  # pragma: no cover - the loop removes one joint per pass
-            raise RuntimeError("friction solve did not converge")
-        if S.size == 0:
-            tau_f = -fr.coulomb_nm * slip_dir - fr.viscous_nms * vj
+            slip_dir[i] = sgn[i] if vl[i] != 0 else -((f_S[k] > 0.0) - (f_S[k] < 0.0))
+            del S[k]
+        else:
+            tau_f = np.array([-c * s - d * v for c, s, d, v in zip(coulomb, slip_dir, viscous, vl)])
         self.stuck[:] = False
-        self.stuck[S] = True
+        for i in S:
+            self.stuck[i] = True
+        self._any_stuck = bool(S)
         self.tau_friction = tau_f
         return tau_f
 
@@ -157,3 +171,42 @@ class Dynamics:
     def kinetic_energy(self) -> float:
         return float(pin.computeKineticEnergy(self.model, self.data, self.q, self.v))
 
+
+def _q_rate(th: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rate of the Lie-algebra coordinate theta: dexp^-1(theta) v on the free-flyer block, to
+    first order in theta (theta ~ dt v: the next term is ~1e-9 relative at 1 kHz); revolute
+    joints are Euclidean. ``v + 0.5 * (theta x v)`` for motions [linear; angular], written out
+    in floats (two pin.Motion objects per stage cost more than the rest of the stage)."""
+    a0, a1, a2, w0, w1, w2 = th.tolist()[:6]
+    out = v.tolist()
+    b0, b1, b2, u0, u1, u2 = out[:6]
+    out[0] = b0 + 0.5 * ((w1 * b2 - w2 * b1) + (a1 * u2 - a2 * u1))
+    out[1] = b1 + 0.5 * ((w2 * b0 - w0 * b2) + (a2 * u0 - a0 * u2))
+    out[2] = b2 + 0.5 * ((w0 * b1 - w1 * b0) + (a0 * u1 - a1 * u0))
+    out[3] = u0 + 0.5 * (w1 * u2 - w2 * u1)
+    out[4] = u1 + 0.5 * (w2 * u0 - w0 * u2)
+    out[5] = u2 + 0.5 * (w0 * u1 - w1 * u0)
+    return np.array(out)
+
+
+def _solve_spd(A: list[list[float]], S: list[int], b: list[float]) -> list[float]:
+    """x with A[S, S] x = b for a symmetric positive definite A (nested lists), by Gaussian
+    elimination without pivoting (stable for SPD) in Python floats: for these few unknowns
+    numpy's LAPACK call costs more than the friction step around it."""
+    if len(S) == 1:
+        return [b[0] / A[S[0]][S[0]]]
+    M = [[A[i][j] for j in S] for i in S]
+    x = list(b)
+    n = len(S)
+    for p in range(n):
+        for r in range(p + 1, n):
+            f = M[r][p] / M[p][p]
+            for c in range(p + 1, n):
+                M[r][c] -= f * M[p][c]
+            x[r] -= f * x[p]
+    for p in range(n - 1, -1, -1):
+        s = x[p]
+        for c in range(p + 1, n):
+            s -= M[p][c] * x[c]
+        x[p] = s / M[p][p]
+    return x

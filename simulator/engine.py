@@ -4,6 +4,19 @@
 sensors and the flight computer put on the buses during that millisecond); ``run()`` steps to
 the end and returns the :class:`~simulator.truth.Trace`. The sensor firmware
 (``simulator.firmware``) consumes ``Readings``.
+
+How the loop is organised (for speed; the result does not depend on it):
+
+- each step (``_advance``) runs only what the closed loop needs: the encoders and the joint
+  controller on controller steps, the base controller on base steps, the physics step, and
+  records the raw truth (state, acceleration, friction, the force each arm's first joint
+  transmits, taken from the physics step's first ABA call instead of a separate RNEA);
+- the thruster chain (PWPFM valves, thrust errors, actual wrench) depends only on the
+  allocation and on time, so it is computed for a whole base-control period at once;
+- the sensor models and the derived truth (F/T wrenches at the sensors, encoder samples, IMU
+  samples, classical base acceleration, actual torques) do not feed back, so ``_sense`` runs
+  them over blocks of recorded steps: every step inside ``step()`` (which returns that
+  step's readings), every ``SENSE_BLOCK`` steps inside ``run()``.
 """
 from __future__ import annotations
 
@@ -18,7 +31,7 @@ from robot_description import Robot
 from .controller import Controller, Target, pregrasp_ik
 from .dynamics import Dynamics, Friction
 from .scenario import Scenario
-from .sensors import Encoders, ForceTorqueSensors, Imu, cross3
+from .sensors import Encoders, ForceTorqueSensors, Imu, cross_rows
 from .thrusters import PWPFM, Allocator, Layout, ThrusterErrors
 from .truth import Trace
 
@@ -55,6 +68,9 @@ def friction_from(robot: Robot, cfg, enabled: bool = True) -> Friction:
             frac[names.index(name)] = float(value)
     coulomb = frac * robot.effort_limit
     return Friction(coulomb, coulomb * float(cfg.static_ratio), np.full(n, float(cfg.viscous_nms_rad)))
+
+
+SENSE_BLOCK = 1024      # steps of raw truth run through the sensor models at once by run()
 
 
 class Simulation:
@@ -99,11 +115,11 @@ class Simulation:
         self.imu_every = max(1, round(1.0 / (cfg.noise.imu.rate_hz * DT_S)))
         self.enc = Encoders(cfg.noise.encoder, scale, r.n_joints, rng[4])
 
-        # sensor frame <- first joint frame, for the F/T truth from RNEA's joint forces
-        self._sensor_M = [r.model.frames[a.sensor_frame].placement for a in r.arms]
-        self._rdata = r.model.createData()
+        self._ft_map = [_SensorMap(r.model, arm) for arm in r.arms]
+        self._first_joints = [(i, arm.joints[0]) for i, arm in enumerate(r.arms)]
         self._degrade = list(sc.data.get("degrade", []))
         self._check_degrade()
+        self._friction_degrade = [d for d in self._degrade if d["kind"] == "friction_growth"]
 
         self.k = 0
         self.tau_cmd = np.zeros(r.n_joints)
@@ -112,6 +128,14 @@ class Simulation:
         self.wrench_cmd = np.zeros(6)
         self.ee = self.ee_des = np.zeros((len(r.arms), 3))   # end effector and its reference, inertial
         self.trace = Trace.allocate(self)
+        self._rows = tuple(self.trace.arrays[name] for name in ("q", "v", "a", "tau_friction", "stuck"))
+        # raw truth not kept in the trace: force transmitted by each arm's first joint (its frame)
+        self._f_joint = np.zeros((self.n_steps, len(r.arms), 6))
+        self._sensed = 0                      # rows [0, _sensed) have been through the sensor models
+        self._wrench_chunk = np.zeros((self.base_every, 6))
+        self._chunk_valves = np.zeros((self.base_every, self.layout.n), dtype=bool)
+        # end-effector references at every controller step, computed at once
+        self._ref = self.ctrl.desired(np.arange(0, self.n_steps, self.ctrl_every) * DT_S)
 
     # ------------------------------------------------------------------------------------------
     def _check_degrade(self) -> None:
@@ -127,85 +151,165 @@ class Simulation:
             if d["kind"] == "thruster_stuck" and d["state"] not in ("open", "closed"):
                 raise ValueError("degrade: thruster_stuck state must be 'open' or 'closed'")
 
-    def _apply_degradations(self, t: float) -> None:
+    # Every degradation is a function of time: from its onset on, it sets its value at every step
+    # (in list order, so a later entry for the same item wins).
+    def _apply_friction_degradations(self, t: float) -> None:
         fr = self.dyn.friction
         ratio = float(self.scenario.cfg.friction.static_ratio)
-        for d in self._degrade:
-            if t < d["onset_s"]:
+        for d in self._friction_degrade:
+            if t < d["onset_s"] or not self.friction_enabled:
                 continue
-            kind = d["kind"]
-            if kind == "friction_growth" and self.friction_enabled:
-                j = self.robot.joint_names.index(d["joint"])
-                frac0 = self._base_coulomb[j] / self.robot.effort_limit[j]
-                s = min(1.0, (t - d["onset_s"]) / max(d["ramp_s"], 1e-9))
-                fr.coulomb_nm[j] = (frac0 + s * (d["to_fraction"] - frac0)) * self.robot.effort_limit[j]
-                fr.static_nm[j] = fr.coulomb_nm[j] * ratio
-            elif kind == "thruster_loss":
-                self.thr_err.degrade[d["thruster"]] = d["factor"]
-            elif kind == "thruster_stuck":
-                self.thr_err.stuck[d["thruster"]] = 1 if d["state"] == "open" else -1
-            elif kind == "ft_bias_drift":
-                k = [a.name for a in self.robot.arms].index(d["arm"])
-                dt = t - d["onset_s"]
-                self.ft.drift[k] = dt * np.concatenate([d["force_n_per_s"], d["torque_nm_per_s"]]).astype(float)
+            j = self.robot.joint_names.index(d["joint"])
+            frac0 = self._base_coulomb[j] / self.robot.effort_limit[j]
+            s = min(1.0, (t - d["onset_s"]) / max(d["ramp_s"], 1e-9))
+            fr.coulomb_nm[j] = (frac0 + s * (d["to_fraction"] - frac0)) * self.robot.effort_limit[j]
+            fr.static_nm[j] = fr.coulomb_nm[j] * ratio
+
+    def _thruster_degradations(self, t: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Per-step (gain factor, stuck state) arrays (len(t), m), or None when there are none."""
+        kinds = [d for d in self._degrade if d["kind"] in ("thruster_loss", "thruster_stuck")]
+        if not kinds:
+            return None, None
+        m = self.layout.n
+        factor, stuck = np.ones((len(t), m)), np.zeros((len(t), m), dtype=int)
+        for d in kinds:
+            on = t >= d["onset_s"]
+            if d["kind"] == "thruster_loss":
+                factor[on, d["thruster"]] = d["factor"]
+            else:
+                stuck[on, d["thruster"]] = 1 if d["state"] == "open" else -1
+        self.thr_err.degrade, self.thr_err.stuck = factor[-1].copy(), stuck[-1].copy()
+        return factor, stuck
+
+    def _ft_drift(self, t: np.ndarray) -> np.ndarray | None:
+        """Per-step F/T bias drift (len(t), p, 6), or None when there is none."""
+        kinds = [d for d in self._degrade if d["kind"] == "ft_bias_drift"]
+        if not kinds:
+            return None
+        arms = [a.name for a in self.robot.arms]
+        drift = np.zeros((len(t), len(arms), 6))
+        for d in kinds:
+            on = t >= d["onset_s"]
+            rate = np.concatenate([d["force_n_per_s"], d["torque_nm_per_s"]]).astype(float)
+            drift[on, arms.index(d["arm"])] = (t[on] - d["onset_s"])[:, None] * rate
+        return drift
 
     # ------------------------------------------------------------------------------------------
-    def step(self) -> Readings:
-        """Advance one millisecond; the readings are those sampled at the start of the step."""
-        k, r, dyn = self.k, self.robot, self.dyn
-        t = k * DT_S
-        if self._degrade:
-            self._apply_degradations(t)
+    def _advance(self) -> None:
+        """One step of the closed loop; records the raw truth of row k (see the module docstring)."""
+        k, dyn, A = self.k, self.dyn, self.trace.arrays
+        if self._friction_degrade:
+            self._apply_friction_degradations(k * DT_S)
         q, v = dyn.q, dyn.v
-        jq, jv = q[7:], v[6:]
-        angle, rate = self.enc.read(jq, jv)
 
-        torque_cmd = thruster_cmd = None
         if k % self.ctrl_every == 0:
             # the flight computer sees the encoders and the navigation solution of the base
-            qm = q.copy()
-            qm[7:] = angle
-            vm = v.copy()
-            vm[6:] = rate
-            self.tau_cmd, self.ee, self.ee_des = self.ctrl.joint_torques(t, qm, vm)
-            torque_cmd = self.tau_cmd
-        if k % self.base_every == 0:
+            angle, rate = self.enc.read(q[7:], v[6:], k)
+            qm = np.concatenate((q[:7], angle))
+            vm = np.concatenate((v[:6], rate))
+            i = k // self.ctrl_every
+            xd = self._ref[0][i]
+            self.tau_cmd, self.ee = self.ctrl.torques(xd, self._ref[1][i], qm, vm)
+            self.ee_des = xd
+            hold = slice(k, k + self.ctrl_every)          # held until the next controller step
+            A["tau_cmd"][hold] = self.tau_cmd
+            A["ee"][hold] = self.ee
+            A["ee_des"][hold] = xd
+        be = self.base_every
+        j = k % be
+        if j == 0:
             M = pin.XYZQUATToSE3(q[:7])
             self.demand = self.ctrl.base_wrench(q, v)
             allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
             self.u_cmd = self.alloc.allocate(self.demand, allowed)
             self.wrench_cmd = self.alloc.B @ self.u_cmd
-            thruster_cmd = self.wrench_cmd
-        valves = self.thr_err.valves(self.pwpfm.step(self.u_cmd / self.layout.max_n))
-        thrust = self.thr_err.thrust(valves)
-        wrench_act = self.thr_err.B_actual @ thrust
+            # the thruster chain until the next allocation depends on nothing else
+            commanded = self.pwpfm.run(self.u_cmd / self.layout.max_n, be)
+            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
+            valves, thrust = self.thr_err.run(commanded, factor, stuck)
+            self._chunk_valves = valves
+            self._wrench_chunk = thrust @ self.thr_err.B_actual.T
+            hold = slice(k, k + be)
+            n = len(A["valves"][hold])
+            A["thr_demand"][hold] = self.demand
+            A["thr_cmd"][hold] = self.wrench_cmd
+            A["valves"][hold] = valves[:n]
+            A["thrust"][hold] = thrust[:n]
+            A["thr_act"][hold] = self._wrench_chunk[:n]
 
-        a = dyn.step(wrench_act, self.tau_cmd)
+        a = dyn.step(self._wrench_chunk[j], self.tau_cmd)
 
-        # truth at the start of the step: transmitted wrenches from RNEA with the actual motion
-        data = self._rdata
-        pin.rnea(r.model, data, q, v, a)
-        ft_true = np.empty((len(r.arms), 6))
-        for i, arm in enumerate(r.arms):
-            f = self._sensor_M[i].actInv(data.liMi[arm.joints[0]].act(data.f[arm.joints[0]]))
-            ft_true[i, :3] = f.linear
-            ft_true[i, 3:] = f.angular
-        ft_meas, ft_sat = self.ft.read(ft_true)
+        Aq, Av, Aa, Atf, Ast = self._rows
+        Aq[k] = q
+        Av[k] = v
+        Aa[k] = a
+        Atf[k] = dyn.tau_friction
+        Ast[k] = dyn.stuck
+        f, F = dyn.data_start.f, self._f_joint[k]
+        for i, joint in self._first_joints:
+            F[i] = f[joint].vector
+        self.k = k + 1
 
-        w, dw = v[3:6], a[3:6]
-        a_c = a[:3] + cross3(w, v[:3])          # classical acceleration of C, body frame
-        self.imu.accumulate(a_c, w, dw)
+    def _sense(self, k1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor models and derived truth for the recorded rows [_sensed, k1).
+
+        Returns the F/T saturation flags of those rows (K, p) and those of the IMU samples
+        completed in them (M,).
+        """
+        k0, A, tr = self._sensed, self.trace.arrays, self.trace
+        q, v, a = A["q"][k0:k1], A["v"][k0:k1], A["a"][k0:k1]
+        t = np.arange(k0, k1) * DT_S
+        A["t_s"][k0:k1] = t
+        np.add(A["tau_cmd"][k0:k1], A["tau_friction"][k0:k1], out=A["tau_act"][k0:k1])
+        # classical acceleration of C, body frame: a_lin + w x v_lin
+        A["base_acc"][k0:k1, :3] = a[:, :3] + cross_rows(v[:, 3:6], v[:, :3])
+        A["base_acc"][k0:k1, 3:] = a[:, 3:6]
+        A["enc_angle"][k0:k1], A["enc_rate"][k0:k1] = self.enc.read_block(q[:, 7:], v[:, 6:], k0)
+        ft_true = A["ft_true"][k0:k1]
+        for i, fm in enumerate(self._ft_map):
+            ft_true[:, i] = fm.sensor_wrench(q, self._f_joint[k0:k1, i])
+        A["ft_meas"][k0:k1], ft_sat = self.ft.read_block(ft_true, k0, self._ft_drift(t))
+
+        # IMU samples whose averaging interval ends in [k0, k1)
+        e, s0 = self.imu_every, tr.n_imu
+        s1 = k1 // e
+        imu_sat = np.zeros(0, dtype=bool)
+        if s1 > s0:
+            rows = slice(s0 * e, s1 * e)
+            shape = (s1 - s0, e, 3)
+            a_c = A["base_acc"][rows, :3].reshape(shape)
+            w = A["v"][rows, 3:6].reshape(shape)
+            dw = A["a"][rows, 3:6].reshape(shape)
+            ends = np.arange(s0 + 1, s1 + 1) * e                # the step after each interval
+            quat = np.empty((s1 - s0, 4))
+            done = ends < self.k
+            quat[done] = A["q"][ends[done], 3:7]
+            quat[~done] = self.dyn.q[3:7]                       # the state after the last step
+            out = self.imu.read_block(a_c, w, dw, _quat_xyzw_to_rotation(quat), s0)
+            A["imu_t_s"][s0:s1] = ends * DT_S
+            for name, x in zip(("imu_quat", "imu_rate", "imu_acc", "imu_rate_true", "imu_acc_true"), out):
+                A[name][s0:s1] = x
+            imu_sat = out[5]
+            tr.n_imu = s1
+        tr.n = self._sensed = k1
+        return ft_sat, imu_sat
+
+    # ------------------------------------------------------------------------------------------
+    def step(self) -> Readings:
+        """Advance one millisecond; the readings are those sampled at the start of the step."""
+        k = self.k
+        self._advance()
+        ft_sat, imu_sat = self._sense(k + 1)
+        A = self.trace.arrays
         imu = None
         if (k + 1) % self.imu_every == 0:         # output at the end of its averaging interval
-            quat, g, acc, g_true, acc_true, sat = self.imu.read(pin.XYZQUATToSE3(dyn.q[:7]).rotation)
-            imu = (quat, g, acc, sat)
-            self.trace.record_imu(self, quat, g, acc, g_true, acc_true)
-
-        self.trace.record(self, q, v, a, a_c, ft_true, ft_meas, angle, rate, valves, thrust, wrench_act)
-        self.k += 1
-        return Readings(t_ns=k * DT_NS, ft=ft_meas, ft_saturated=ft_sat, joint_angle=angle,
-                        joint_rate=rate, imu=imu, torque_cmd=torque_cmd, thruster_cmd=thruster_cmd,
-                        valves=valves)
+            s = self.trace.n_imu - 1
+            imu = (A["imu_quat"][s].copy(), A["imu_rate"][s].copy(), A["imu_acc"][s].copy(), bool(imu_sat[-1]))
+        return Readings(t_ns=k * DT_NS, ft=A["ft_meas"][k].copy(), ft_saturated=ft_sat[-1],
+                        joint_angle=A["enc_angle"][k].copy(), joint_rate=A["enc_rate"][k].copy(), imu=imu,
+                        torque_cmd=self.tau_cmd if k % self.ctrl_every == 0 else None,
+                        thruster_cmd=self.wrench_cmd if k % self.base_every == 0 else None,
+                        valves=self._chunk_valves[k % self.base_every].copy())
 
     def run(self, progress: bool = False) -> Trace:
         bar = None
@@ -213,10 +317,77 @@ class Simulation:
             from tqdm import tqdm
             bar = tqdm(total=self.n_steps, unit="ms", unit_scale=True, desc=f"sim {self.scenario.name}",
                        mininterval=0.5, leave=False)
+        advance = self._advance
         while self.k < self.n_steps:
-            self.step()
+            advance()
+            if self.k - self._sensed >= SENSE_BLOCK:
+                self._sense(self.k)
             if bar is not None and self.k % 250 == 0:
                 bar.update(250)
+        if self._sensed < self.k:
+            self._sense(self.k)
         if bar is not None:
             bar.close()
         return self.trace
+
+
+class _SensorMap:
+    """Force transmitted by an arm's first joint (its local frame) -> wrench at the F/T sensor.
+
+    ``f_S = X (R_joint(q) f)``, X the constant placement of the joint's zero-angle frame in the
+    sensor frame: the same as ``sensor.actInv(liMi.act(f))`` in Pinocchio, for many steps at once.
+    """
+
+    def __init__(self, model: pin.Model, arm):
+        self.model, self.joint = model, arm.joints[0]
+        X = model.frames[arm.sensor_frame].placement.actInv(model.jointPlacements[self.joint])
+        self.R, self.p = X.rotation.copy(), X.translation.copy()
+        self.iq = model.joints[self.joint].idx_q
+        jm = model.joints[self.joint]
+        axes = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
+        name = jm.shortname()
+        if name in axes:
+            self.axis = np.array(axes[name])
+        elif name == "JointModelRevoluteUnaligned":
+            self.axis = np.array(jm.extract().axis, dtype=float)
+        else:                                   # anything else: Pinocchio, one step at a time
+            self.axis = None
+            self._data = model.createData()
+            self._M = model.frames[arm.sensor_frame].placement
+
+    def sensor_wrench(self, q: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """(K, 6) [force; moment about S] in the sensor frame for configurations (K, nq) and
+        joint forces (K, 6) [linear; angular]."""
+        if self.axis is None:
+            out = np.empty_like(f)
+            for i in range(len(f)):
+                pin.forwardKinematics(self.model, self._data, q[i])
+                out[i] = self._M.actInv(self._data.liMi[self.joint].act(pin.Force(f[i]))).vector
+            return out
+        th = q[:, self.iq]
+        c, s = np.cos(th), np.sin(th)
+        x, y, z = self.axis
+        K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+        Rj = c[:, None, None] * np.eye(3) + s[:, None, None] * K + (1.0 - c)[:, None, None] * np.outer(self.axis, self.axis)
+        aligned = np.flatnonzero(np.abs(self.axis) == 1.0)
+        if aligned.size:
+            Rj[:, aligned[0], aligned[0]] = 1.0       # exact, as for Pinocchio's RX/RY/RZ joints
+        G = self.R @ Rj
+        lin = (G @ f[:, :3, None])[..., 0]
+        ang = (G @ f[:, 3:, None])[..., 0] + cross_rows(np.broadcast_to(self.p, lin.shape), lin)
+        return np.concatenate([lin, ang], axis=1)
+
+
+def _quat_xyzw_to_rotation(quat: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) rotation matrices of quaternions (M, 4) [x y z w] (Pinocchio's q layout),
+    with Eigen's formula (what ``pin.XYZQUATToSE3`` uses)."""
+    x, y, z, w = quat[:, 0], quat[:, 1], quat[:, 2], quat[:, 3]
+    tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
+    twx, twy, twz = tx * w, ty * w, tz * w
+    txx, txy, txz = tx * x, ty * x, tz * x
+    tyy, tyz, tzz = ty * y, tz * y, tz * z
+    R = np.empty((len(quat), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = 1.0 - (tyy + tzz), txy - twz, txz + twy
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = txy + twz, 1.0 - (txx + tzz), tyz - twx
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = txz - twy, tyz + twx, 1.0 - (txx + tyy)
+    return R

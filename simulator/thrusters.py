@@ -88,26 +88,30 @@ class Allocator:
         self.B = layout.B
         self.keepout = math.radians(keepout_deg)
         self.eps = eps
+        self._systems: dict[bytes, tuple] = {}     # allowed set -> (idx, scale, A, zeros)
 
     def allowed(self, R_world_body: np.ndarray, p_world: np.ndarray,
                 target_center: np.ndarray, target_radius: float) -> np.ndarray:
-        pos_w = p_world + self.layout.pos_m @ R_world_body.T
-        exhaust_w = -self.layout.dir @ R_world_body.T
-        to_target = target_center - pos_w
-        dist = np.linalg.norm(to_target, axis=1)
-        cosang = np.einsum("ij,ij->i", exhaust_w, to_target) / dist
-        half = self.keepout + np.arcsin(np.clip(target_radius / dist, 0.0, 1.0))
+        to_target = (target_center - p_world) - self.layout.pos_m @ R_world_body.T
+        dist = np.sqrt((to_target * to_target).sum(axis=1))
+        # exhaust direction (minus the force direction) . line to the target
+        cosang = -(to_target @ R_world_body * self.layout.dir).sum(axis=1) / dist
+        half = self.keepout + np.arcsin(np.minimum(target_radius / dist, 1.0))
         return cosang < np.cos(half)
 
     def allocate(self, wrench: np.ndarray, allowed: np.ndarray) -> np.ndarray:
         u = np.zeros(self.layout.n)
-        idx = np.flatnonzero(allowed)
-        if idx.size == 0 or not np.any(wrench):
+        key = allowed.tobytes()
+        if key not in self._systems:                   # the allowed set rarely changes
+            idx = np.flatnonzero(allowed)
+            scale = self.layout.max_n[idx]
+            A = self.B[:, idx] * scale                 # unknowns: fraction of max thrust
+            A = np.vstack([A, self.eps * np.eye(idx.size)])
+            self._systems[key] = (idx, scale, A, np.zeros(idx.size))
+        idx, scale, A, zeros = self._systems[key]
+        if idx.size == 0 or not np.count_nonzero(wrench):
             return u
-        scale = self.layout.max_n[idx]
-        A = self.B[:, idx] * scale                     # unknowns: fraction of max thrust
-        A = np.vstack([A, self.eps * np.eye(idx.size)])
-        b = np.concatenate([wrench, np.zeros(idx.size)])
+        b = np.concatenate([wrench, zeros])
         x, _ = nnls(A, b, maxiter=50 * idx.size)
         peak = x.max()
         if peak > 1.0:
@@ -142,6 +146,74 @@ class PWPFM:
         self.on_steps = np.where(self.on, self.on_steps + 1, 0)
         return self.on
 
+    def run(self, demand_frac: np.ndarray, steps: int) -> np.ndarray:
+        """``steps`` calls of :meth:`step` with the same demand, at once: valve states (steps, n).
+
+        Between two valve switches the filter input is constant, so after m updates the filter
+        is ``F(m) = c + r^m (f - c)`` (``c = km (demand - on)``, ``r = 1 - dt/tau``), monotonic
+        in m. One vectorised pass finds the thrusters that switch within the chunk; for those
+        (a few), each later segment's first switch is found by bisection on ``F(m)``. The same
+        valve sequence as :meth:`step`; the filter state equal to rounding (``r^m`` instead
+        of m repeated updates).
+        """
+        L = steps
+        if getattr(self, "_rp_len", 0) != L:
+            self._rpow = (1.0 - self.alpha) ** np.arange(L + 1, dtype=float)
+            self._rp = self._rpow.tolist()
+            self._J = np.arange(L)[:, None]
+            self._rp_len = L
+        rp, km, u_on, u_off, min_on = self._rp, self.km, self.u_on, self.u_off, self.min_on
+        f, on, cnt = self.f, self.on, self.on_steps
+        c = km * (demand_frac - on)
+        F = c + self._rpow[1:, None] * (f - c)          # after the update of step j, if no switch
+        sw = np.where(on, (F < u_off) & (cnt + self._J >= min_on), F > u_on)
+        valves = np.empty((L, len(f)), dtype=bool)
+        valves[:] = on
+        f_new, on_new, cnt_new = F[-1].copy(), on.copy(), np.where(on, cnt + L, 0)
+        for i in np.flatnonzero(sw.any(axis=0)).tolist():
+            j = int(sw[:, i].argmax())
+            d, o, fi = float(demand_frac[i]), not on[i], float(F[j, i])
+            n_on = 1 if o else 0
+            valves[j:, i] = o
+            s = j + 1                                     # first step of the new segment
+            while s < L:
+                cc = km * (d - o)
+                top = L - s                               # updates left in the chunk
+                lo = max(1, min_on - n_on + 1) if o else 1
+                m = _first(lambda m: (cc + rp[m] * (fi - cc) < u_off) if o else (cc + rp[m] * (fi - cc) > u_on),
+                           lo, top)
+                if m is None:
+                    fi = cc + rp[top] * (fi - cc)
+                    n_on = n_on + top if o else 0
+                    break
+                fi = cc + rp[m] * (fi - cc)
+                o = not o
+                n_on = 1 if o else 0
+                s += m - 1
+                valves[s:, i] = o
+                s += 1
+            f_new[i], on_new[i], cnt_new[i] = fi, o, n_on
+        self.f, self.on, self.on_steps = f_new, on_new, cnt_new
+        return valves
+
+
+def _first(cond, lo: int, hi: int) -> int | None:
+    """Smallest m in [lo, hi] with cond(m), for a cond that is monotonic in m (true on a prefix
+    or on a suffix of the integers), or None."""
+    if lo > hi:
+        return None
+    if cond(lo):
+        return lo
+    if not cond(hi):
+        return None
+    while hi - lo > 1:                     # cond(lo) false, cond(hi) true
+        mid = (lo + hi) // 2
+        if cond(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
 
 class ThrusterErrors:
     """What an open valve really delivers: per-thruster gain, bias and misalignment.
@@ -166,6 +238,36 @@ class ThrusterErrors:
         ang = np.radians(cfg.misalign_deg) * rng.standard_normal((n, 3))
         self.dir_actual = np.array([_rotvec(a) @ d for a, d in zip(ang, layout.dir)])
         self.B_actual = wrench_matrix(layout.pos_m, self.dir_actual)
+
+    def run(self, commanded: np.ndarray, degrade: np.ndarray | None = None,
+            stuck: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """A chunk of L steps at once: (valves (L, n) after stuck valves, thrust (L, n) in N).
+
+        ``commanded``: (L, n) PWPFM valve states; ``degrade``/``stuck``: (L, n) per-step
+        degradation factors and stuck states, or None for the current ones. The thermal state
+        follows ``dT <- dT + heating dt valve - (dt / cooling_tau) dT`` step by step, evaluated
+        in closed form over the chunk (a linear recurrence with a known input).
+        """
+        L = len(commanded)
+        v = commanded.copy()
+        if stuck is not None:
+            v[stuck < 0] = False
+            v[stuck > 0] = True
+        elif self.stuck.any():
+            v[:, self.stuck < 0] = False
+            v[:, self.stuck > 0] = True
+        if getattr(self, "_chunk_len", 0) != L:
+            r = 1.0 - self.cool
+            e = np.arange(L + 1)[:, None] - np.arange(L)[None, :] - 1       # j - 1 - i
+            self._Pin = np.where(e >= 0, r ** np.maximum(e, 0), 0.0) * (self.heating * self.dt)
+            self._Pfree = r ** np.arange(L + 1, dtype=float)
+            self._chunk_len = L
+        dT = self._Pfree[:, None] * self.dT + self._Pin @ v          # (L + 1, n): dT before step j
+        gain = self.scatter * self.pressure * (1.0 + self.thermal * dT[:L])
+        gain *= self.degrade if degrade is None else degrade
+        f = v * (self.layout.max_n * gain + self.bias_n)
+        self.dT = dT[L]
+        return v, f
 
     def valves(self, commanded: np.ndarray) -> np.ndarray:
         v = commanded.copy()

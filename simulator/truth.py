@@ -3,6 +3,9 @@
 Saved as one ``.npz`` (numpy arrays, no pickled objects) with a JSON ``meta`` string; the
 arrays and their units and frames are listed in ``FIELDS`` (and docs/truth-trace.md).
 ``N`` = steps, ``p`` = arms, ``n`` = actuated joints, ``m`` = thrusters, ``M`` = IMU samples.
+
+The simulation writes the arrays in place (``simulator.engine``); ``n`` and ``n_imu`` count the
+complete rows, and indexing a trace by name returns only those.
 """
 from __future__ import annotations
 
@@ -75,41 +78,6 @@ class Trace:
             "target_center_m": sim.target.center.tolist(), "target_radius_m": sim.target.radius,
         }
         return cls(arrays, meta)
-
-    def record(self, sim, q, v, a, a_c, ft_true, ft_meas, angle, rate, valves, thrust, wrench_act) -> None:
-        A, k = self.arrays, self.n
-        A["t_s"][k] = k * 1e-3
-        A["q"][k] = q
-        A["v"][k] = v
-        A["a"][k] = a
-        A["base_acc"][k, :3] = a_c
-        A["base_acc"][k, 3:] = a[3:6]
-        A["tau_cmd"][k] = sim.tau_cmd
-        A["tau_friction"][k] = sim.dyn.tau_friction
-        A["tau_act"][k] = sim.tau_cmd + sim.dyn.tau_friction
-        A["stuck"][k] = sim.dyn.stuck
-        A["thr_demand"][k] = sim.demand
-        A["thr_cmd"][k] = sim.wrench_cmd
-        A["thr_act"][k] = wrench_act
-        A["valves"][k] = valves
-        A["thrust"][k] = thrust
-        A["ft_true"][k] = ft_true
-        A["ft_meas"][k] = ft_meas
-        A["enc_angle"][k] = angle
-        A["enc_rate"][k] = rate
-        A["ee"][k] = sim.ee
-        A["ee_des"][k] = sim.ee_des
-        self.n = k + 1
-
-    def record_imu(self, sim, quat, rate, acc, rate_true, acc_true) -> None:
-        A, k = self.arrays, self.n_imu
-        A["imu_t_s"][k] = (sim.k + 1) * 1e-3
-        A["imu_quat"][k] = quat
-        A["imu_rate"][k] = rate
-        A["imu_acc"][k] = acc
-        A["imu_rate_true"][k] = rate_true
-        A["imu_acc_true"][k] = acc_true
-        self.n_imu = k + 1
 
     def __getitem__(self, name: str) -> np.ndarray:
         a = self.arrays[name]

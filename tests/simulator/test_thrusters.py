@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from simulator import scenario
-from simulator.thrusters import PWPFM, Allocator, Layout
+from simulator.thrusters import PWPFM, Allocator, Layout, ThrusterErrors
 
 
 @pytest.mark.parametrize("demand", [0.1, 0.2, 0.35, 0.5, 0.75, 0.9])
@@ -71,3 +71,40 @@ def test_backing_away_from_target_uses_the_canted_thrusters():
     assert not allowed.all()                        # some thrusters are masked by the cone
     u = alloc.allocate(np.array([-50.0, 0, 0, 0, 0, 0]), allowed)
     assert (layout.B @ u)[0] == pytest.approx(-50.0, abs=0.5)
+
+
+@pytest.mark.parametrize("steps", [1, 7, 20])
+def test_pwpfm_chunk_equals_step_by_step(steps):
+    """``run`` (closed-form filter between switches) gives the valves of repeated ``step``."""
+    pw = scenario.load().cfg.thrusters.pwpfm
+    rng = np.random.default_rng(3)
+    a = PWPFM(18, 1e-3, pw.km, pw.tau_s, pw.u_on, pw.u_off, pw.min_on_s)
+    b = PWPFM(18, 1e-3, pw.km, pw.tau_s, pw.u_on, pw.u_off, pw.min_on_s)
+    for _ in range(3000 // steps):
+        demand = np.where(rng.random(18) < 0.4, rng.random(18), 0.0)
+        chunk = a.run(demand, steps)
+        ref = np.array([b.step(demand).copy() for _ in range(steps)])
+        assert np.array_equal(chunk, ref)
+        assert np.array_equal(a.on, b.on) and np.array_equal(a.on_steps, b.on_steps)
+        assert np.allclose(a.f, b.f, rtol=0, atol=1e-12)
+
+
+def test_thruster_errors_chunk_equals_step_by_step():
+    cfg = scenario.load().cfg.thrusters
+    layout = Layout.from_config(cfg)
+    rng = np.random.default_rng(4)
+    a = ThrusterErrors(layout, cfg, np.random.default_rng(5), 1e-3)
+    b = ThrusterErrors(layout, cfg, np.random.default_rng(5), 1e-3)
+    stuck = np.zeros((20, layout.n), dtype=int)
+    stuck[5:, 2], stuck[12:, 4] = 1, -1
+    factor = np.ones((20, layout.n))
+    factor[8:, 1] = 0.5
+    for _ in range(50):
+        cmd = rng.random((20, layout.n)) < 0.5
+        valves, thrust = a.run(cmd, factor, stuck)
+        for j in range(20):
+            b.stuck, b.degrade = stuck[j], factor[j]
+            v = b.valves(cmd[j])
+            assert np.array_equal(valves[j], v)
+            assert np.allclose(thrust[j], b.thrust(v), rtol=1e-12, atol=1e-12)
+    assert np.allclose(a.dT, b.dT, rtol=1e-9)
