@@ -32,6 +32,17 @@ def main(role: str, name: str, duration_s: str, groups: str, out: str | None = N
             firmware.run_on_buses(sim, buses, firmware=fw, realtime=True)
             print(json.dumps(dict(fw.frames_sent)), flush=True)
             return 0
+        # a loaded 2-core host can starve the receiver for tens of ms: give each socket room for
+        # that (UDP drops silently when the default ~200 kB buffer fills; seen in CI under load)
+        import socket
+        for bus in buses.values():
+            sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+            if sock is not None:
+                opt = getattr(socket, "SO_RCVBUFFORCE", socket.SO_RCVBUF)
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, opt, 16 << 20)
+                except OSError:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 << 20)
         rig = BusRig(sim.robot, dict(buses))
         try:
             print("ready", flush=True)
