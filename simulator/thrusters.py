@@ -17,61 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
-# Layouts by name: rows (x, y, z, fx, fy, fz) with positions in m and unit force directions.
-# "ring18" for the paper's 4.2 m cylinder (rim radius 2.1 m, height 2 m), target on +x:
-# tangential pairs at four azimuths for in-plane force and yaw; two canted thrusters at the
-# front so that the spacecraft can back away from the target without pointing a plume at it;
-# eight axial thrusters for the out-of-plane axes.
-_C = math.cos(math.radians(60.0))
-_S = math.sin(math.radians(60.0))
-LAYOUTS: dict[str, list[tuple[float, ...]]] = {
-    "ring18": [
-        (2.1, 0.0, 0.0, 0.0, 1.0, 0.0), (2.1, 0.0, 0.0, 0.0, -1.0, 0.0),
-        (2.1, 0.0, 0.0, -_C, -_S, 0.0), (2.1, 0.0, 0.0, -_C, _S, 0.0),
-        (0.0, 2.1, 0.0, 1.0, 0.0, 0.0), (0.0, 2.1, 0.0, -1.0, 0.0, 0.0),
-        (-2.1, 0.0, 0.0, 0.0, 1.0, 0.0), (-2.1, 0.0, 0.0, 0.0, -1.0, 0.0),
-        (0.0, -2.1, 0.0, 1.0, 0.0, 0.0), (0.0, -2.1, 0.0, -1.0, 0.0, 0.0),
-        (2.1, 0.0, 1.0, 0.0, 0.0, -1.0), (2.1, 0.0, -1.0, 0.0, 0.0, 1.0),
-        (0.0, 2.1, 1.0, 0.0, 0.0, -1.0), (0.0, 2.1, -1.0, 0.0, 0.0, 1.0),
-        (-2.1, 0.0, 1.0, 0.0, 0.0, -1.0), (-2.1, 0.0, -1.0, 0.0, 0.0, 1.0),
-        (0.0, -2.1, 1.0, 0.0, 0.0, -1.0), (0.0, -2.1, -1.0, 0.0, 0.0, 1.0),
-    ],
-}
+from robot_description.thrusters import LAYOUTS, ThrusterLayout, wrench_matrix
 
-
-def wrench_matrix(pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """6 x N map from thrust magnitudes to the body wrench about C."""
-    return np.vstack([dirs.T, np.cross(pos, dirs).T])
-
-
-@dataclass
-class Layout:
-    pos_m: np.ndarray        # (N, 3) body frame
-    dir: np.ndarray          # (N, 3) unit force direction on the spacecraft, body frame
-    max_n: np.ndarray        # (N,) nominal thrust
-
-    @property
-    def n(self) -> int:
-        return len(self.max_n)
-
-    @property
-    def B(self) -> np.ndarray:
-        return wrench_matrix(self.pos_m, self.dir)
-
-    @classmethod
-    def from_config(cls, cfg) -> "Layout":
-        custom = getattr(cfg, "custom", None)
-        if custom:
-            rows = [tuple(t.pos_m) + tuple(t.dir) for t in custom]
-            maxes = [float(getattr(t, "max_thrust_n", cfg.max_thrust_n)) for t in custom]
-        else:
-            if cfg.layout not in LAYOUTS:
-                raise ValueError(f"unknown thruster layout {cfg.layout!r} (known: {', '.join(LAYOUTS)})")
-            rows = LAYOUTS[cfg.layout]
-            maxes = [cfg.max_thrust_n] * len(rows)
-        a = np.array(rows, dtype=float)
-        d = a[:, 3:] / np.linalg.norm(a[:, 3:], axis=1, keepdims=True)
-        return cls(a[:, :3].copy(), d, np.array(maxes))
+# The layout (positions, directions, max thrust; named tables such as "ring18") is robot data,
+# shared with the gateway's estimator: robot_description/thrusters.py.
+Layout = ThrusterLayout
+__all__ = ["LAYOUTS", "Layout", "wrench_matrix", "Allocator", "PWPFM", "ThrusterErrors"]
 
 
 class Allocator:
