@@ -23,7 +23,8 @@ DEGRADE_KINDS = {
     "ft_bias_drift": {"arm": str, "onset_s": float, "force_n_per_s": list, "torque_nm_per_s": list},
 }
 # keys whose value is a free-form table (not checked against the default)
-FREE_TABLES = {"friction.per_joint", "thrusters.custom", "thrusters.pwpfm"}
+# (the default file may leave them out); ``faults`` is checked by simulator.firmware.Faults
+FREE_TABLES = {"friction.per_joint", "thrusters.custom", "thrusters.pwpfm", "faults"}
 
 
 class ScenarioError(ValueError):
@@ -100,10 +101,12 @@ def _merge(base: dict, user: dict, where: str) -> dict:
         if key == "degrade" and not where:
             out[key] = value
             continue
-        if key not in base:
-            raise ScenarioError(f"unknown scenario key {dotted!r}")
         if dotted in FREE_TABLES:
+            if not isinstance(value, dict):
+                raise ScenarioError(f"scenario key {dotted!r} must be a table")
             out[key] = value
+        elif key not in base:
+            raise ScenarioError(f"unknown scenario key {dotted!r}")
         elif isinstance(base[key], dict):
             if not isinstance(value, dict):
                 raise ScenarioError(f"scenario key {dotted!r} must be a table")
@@ -153,4 +156,11 @@ def _build(name: str, text: str, data: dict) -> Scenario:
     _check_degrade(data.get("degrade", []))
     if data["duration_s"] <= 0:
         raise ScenarioError("duration_s must be positive")
+    if "faults" in data:
+        from simulator.firmware import Faults, FirmwareError
+
+        try:
+            Faults.from_table(data["faults"])
+        except (FirmwareError, TypeError) as exc:
+            raise ScenarioError(str(exc)) from None
     return Scenario(name=name, text=text, data=data, cfg=_ns(data))

@@ -21,6 +21,8 @@ def test_defaults_are_the_capture_task():
     ("[[degrade]]\nkind = 'gremlins'\n", "kind must be one of"),
     ("[[degrade]]\nkind = 'thruster_loss'\nthruster = 1\n", "missing key 'onset_s'"),
     ("duration_s = [\n", "not valid TOML"),
+    ("[faults]\ndrop_rat = 0.1\n", "unknown key.*drop_rat"),
+    ("[friction]\nper_joint = 3\n", "friction.per_joint' must be a table"),
 ])
 def test_bad_files_name_the_problem(tmp_path, text, match):
     f = tmp_path / "bad.toml"
@@ -35,6 +37,19 @@ def test_partial_file_merges_over_defaults(tmp_path):
     sc = scenario.load(f)
     assert sc.duration_s == 0.5 and sc.cfg.friction.coulomb_fraction == 0.45
     assert sc.cfg.noise.imu.rate_hz == 500           # untouched default
+
+
+def test_free_tables_pass_through(tmp_path):
+    """friction.per_joint and [faults] are absent from the default file, yet valid."""
+    f = tmp_path / "worn.toml"
+    f.write_text('duration_s = 0.01\n[friction]\nper_joint = { "arm0/j2" = 0.55 }\n'
+                 '[faults]\ndrop_rate = 0.01\nsilent = [["imu", 0.1, 0.2]]\n')
+    sc = scenario.load(f)
+    assert sc.data["faults"]["drop_rate"] == 0.01
+    sim = Simulation(sc)
+    j2 = sim.robot.joint_names.index("arm0/j2")
+    assert sim.dyn.friction.coulomb_nm[j2] == pytest.approx(0.55 * sim.robot.effort_limit[j2])
+    assert sim.dyn.friction.coulomb_nm[0] == pytest.approx(0.30 * sim.robot.effort_limit[0])
 
 
 def test_degradations_act_at_their_onset():
