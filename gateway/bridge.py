@@ -176,7 +176,7 @@ class GatewayService:
     def _emit(self, key: str, obj) -> None:
         if self.recorder is not None:
             self.recorder.record(key, obj, self._frame_ns)
-        if self.publish_samples or "/sensors/" not in key and "/commands/" not in key:
+        if self.publish_samples or "/sensors/" not in key:
             self.publish(key, obj)
 
     def publish(self, key: str, obj) -> None:

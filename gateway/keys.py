@@ -5,9 +5,10 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/sensors/wrench/<arm>              WrenchSample      F/T sensor of arm <arm>
     bsc/<robot>/sensors/joint/<arm>/<joint>       JointSample       joint drive report
     bsc/<robot>/sensors/imu                       ImuSample         spacecraft IMU
-    bsc/<robot>/commands/torque/<arm>/<joint>     TorqueCommand     commanded motor torque
-    bsc/<robot>/commands/thrusters                ThrusterCommand   commanded thruster wrench
-    bsc/<robot>/commands/valves                   ValveCommand      valve commands, 1 kHz
+    bsc/<robot>/sensors/commands/torque/<arm>/<joint>  TorqueCommand  commanded motor torque,
+                                                                    as observed on the CAN bus
+    bsc/<robot>/sensors/commands/thrusters        ThrusterCommand   commanded thruster wrench (observed)
+    bsc/<robot>/sensors/commands/valves           ValveCommand      valve commands, 1 kHz (observed)
     bsc/<robot>/health/bus/<bus>                  BusHealth         per CAN bus
     bsc/<robot>/health/device/<device...>         DeviceHealth      per device (<arm>, <arm>/<joint>,
                                                                     <arm>/torque_cmd, imu, thrusters)
@@ -15,8 +16,13 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/efforts/thrusters                 ThrusterEffort    estimated thruster wrench
     bsc/<robot>/alerts                            Alert             monitor / analyze alerts
 
-Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sensor
-sample, ``ROOT/**`` for everything.
+Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sample
+the gateway decodes from the buses (commands included), ``ROOT/**`` for everything.
+
+The commands the gateway sees on the CAN buses are observations, so they live under
+``sensors/commands/``. ``bsc/<robot>/commands/**`` (:func:`commands`) is left to the robot's
+controller: in a deployment only a configured controller may publish there
+(deploy/zenoh/router.json5), and the gateway never does.
 """
 from __future__ import annotations
 
@@ -60,15 +66,15 @@ def imu(robot: str) -> str:
 
 
 def torque_command(robot: str, device: str) -> str:
-    return f"{robot_root(robot)}/commands/torque/{_path(device)}"
+    return f"{robot_root(robot)}/sensors/commands/torque/{_path(device)}"
 
 
 def thruster_command(robot: str) -> str:
-    return f"{robot_root(robot)}/commands/thrusters"
+    return f"{robot_root(robot)}/sensors/commands/thrusters"
 
 
 def valve_command(robot: str) -> str:
-    return f"{robot_root(robot)}/commands/valves"
+    return f"{robot_root(robot)}/sensors/commands/valves"
 
 
 def bus_health(robot: str, bus: str) -> str:
@@ -99,7 +105,12 @@ def sensors(robot: str) -> str:
     return f"{robot_root(robot)}/sensors/**"
 
 
+def observed_commands(robot: str) -> str:
+    return f"{robot_root(robot)}/sensors/commands/**"
+
+
 def commands(robot: str) -> str:
+    """The controller's key space (the gateway never publishes here)."""
     return f"{robot_root(robot)}/commands/**"
 
 

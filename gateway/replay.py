@@ -364,9 +364,9 @@ def key_scheme(wire_map) -> dict[str, str]:
 
     robot = wire_map.robot
     out = {"everything": keys.everything(robot), "sensors": keys.sensors(robot),
-           "commands": keys.commands(robot), "health": keys.health(robot),
+           "observed_commands": keys.observed_commands(robot), "health": keys.health(robot),
            "efforts": keys.efforts(robot), "imu": keys.imu(robot),
-           "thruster_command": keys.thruster_command(robot),
+           "thruster_command": keys.thruster_command(robot), "valve_command": keys.valve_command(robot),
            "thruster_effort": keys.thruster_effort(robot), "alerts": keys.alerts(robot),
            "health/device/imu": keys.device_health(robot, "imu"),
            "health/device/thrusters": keys.device_health(robot, "thrusters")}
