@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "recover": ("recover", "salvage a truncated MCAP log (crash, kill, full disk) into a valid file"),
     "record": ("record", "record a session to MCAP: raw CAN frames per bus and every zenoh sample"),
     "replay": ("replay", "replay a log offline through drivers + estimator, or live onto CAN or zenoh"),
+    "monitor": ("monitor", "live monitoring over zenoh: residuals, friction, efficiency, sensor health, alerts"),
+    "analyze": ("analyze", "actuator and sensor degradation from recorded sessions: friction, efficiency, trends"),
 }
 
 

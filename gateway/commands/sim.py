@@ -3,6 +3,8 @@
     bsc sim --scenario capture --duration 8 --out sim-out
     bsc sim --interface virtual --channel bsc --realtime --drop-rate 0.01
     bsc sim -i udp_multicast -c arm0=239.74.163.1 -c arm1=239.74.163.2 -c spacecraft=239.74.163.3
+    bsc sim --series friction-growth --sessions 12 --out series/fg
+
 
 Writes ``truth.npz`` (docs/truth-trace.md), ``summary.json`` and PNG figures like the paper's:
 trajectories, end-effector error with and without friction, commanded vs actual joint torques
@@ -10,6 +12,10 @@ and thruster wrench. With ``--interface`` the robot's sensor firmware also puts 
 the robot's CAN buses (any python-can interface; channels as ``bsc gateway`` takes them), in
 lockstep or paced to the wall clock (``--realtime``), with optional fault injection
 (docs/firmware.md). A scenario's ``[faults]`` table sets the same knobs; flags override it.
+
+With ``--series`` it writes N recorded sessions (MCAP) of the capture task with a known
+degradation instead, plus ``series.json`` (onset, per-session truth): the input of
+``bsc analyze`` (docs/monitoring.md).
 """
 from __future__ import annotations
 
@@ -31,6 +37,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-compare", action="store_true",
                    help="skip the friction-free comparison run (used by the end-effector error plot)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    s_g = p.add_argument_group("degradation series (recorded sessions for bsc analyze)")
+    s_g.add_argument("--series", metavar="NAME",
+                     help="write a series of recorded sessions: healthy, friction-growth, thruster-loss, "
+                          "ft-bias-drift")
+    s_g.add_argument("--sessions", type=int, default=12, metavar="N", help="sessions in the series (default 12)")
+    s_g.add_argument("--backend", choices=("pipeline", "batch"), default="pipeline",
+                     help="pipeline: firmware -> CAN frames -> drivers + estimator, raw frames recorded "
+                          "(default); batch: the batch estimator on the truth trace's measured signals, "
+                          "efforts only (fast, no CAN)")
+    s_g.add_argument("--workers", type=int, metavar="N", help="worker processes (default: CPU count)")
+    s_g.add_argument("--overwrite", action="store_true", help="replace an existing series in --out")
     can_g = p.add_argument_group("CAN (the sensor firmware; without --interface nothing is sent)")
     can_g.add_argument("--interface", "-i", metavar="NAME",
                        help="python-can interface: virtual, udp_multicast, socketcan, ...")
@@ -94,6 +111,8 @@ def _uses_can(args: argparse.Namespace) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.series is not None:
+        return _run_series(args)
     from simulator import plots, scenario
     from simulator.engine import Simulation
 
@@ -168,3 +187,30 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
                    "frames_sent": dict(fw.frames_sent), "faults_injected": totals,
                    "faults_per_device": {d: {k: v for k, v in fw.counts[d].items() if v and k != "samples"}
                                          for d in fw.devices if any(v for k, v in fw.counts[d].items() if k != "samples")}}
+
+
+def _run_series(args: argparse.Namespace) -> int:
+    from gateway.series import DEFAULT_DURATION_S, SERIES, write_series
+
+    if args.series not in SERIES:
+        raise ValueError(f"--series {args.series!r}: choose one of {', '.join(SERIES)}")
+    if args.interface or _uses_can(args) or args.robot or args.seed is not None or args.scenario != "capture":
+        raise ValueError("--series writes the capture task with its own seeds: it takes --sessions, --duration, "
+                         "--backend, --workers, --overwrite and --out only")
+    if args.duration is not None and args.duration <= 0:
+        raise ValueError("--duration must be positive")
+    t0 = time.perf_counter()
+    try:
+        paths = write_series(args.series, args.sessions, args.out,
+                             duration_s=args.duration or DEFAULT_DURATION_S, progress=not args.quiet,
+                             backend=args.backend, workers=args.workers, overwrite=args.overwrite)
+    except FileExistsError as exc:
+        raise ValueError(f"{exc}; --overwrite replaces it") from None
+    truth = json.loads((args.out / "series.json").read_text())
+    onset = truth["onset_session"]
+    print(f"wrote {len(paths)} sessions of series {args.series!r} ({args.backend}) to {args.out}/ in "
+          f"{time.perf_counter() - t0:.0f} s; "
+          + ("no degradation" if onset is None else
+             f"{truth['expected_kind']} fault on {truth['expected_target']} from session {onset}")
+          + "; truth in series.json")
+    return 0

@@ -1,0 +1,343 @@
+"""Simulated degradation series: N recorded sessions of the capture task with a known fault.
+
+    write_series("friction-growth", 12, "series/fg")  ->  series/fg/session_0000.mcap ... _0011.mcap
+                                                          series/fg/series.json (the ground truth)
+
+Each session is a short capture run (its own seed: sensor noise, thruster scatter) of the SAME
+robot; the degradation advances ACROSS sessions, as a fleet's logs would show it over months.
+The table :data:`SERIES` says what degrades, from which session (``onset``), and how much per
+session. Sessions are numbered in time order: session ``k`` starts ``k`` days after
+:data:`EPOCH_NS` (its MCAP log times), and its ``bsc.series`` metadata holds ``session_index``,
+so ``bsc analyze`` orders them without trusting file names.
+
+Two ways to make the efforts of a session (``backend``):
+
+- ``"pipeline"``: the real path. ``simulator.firmware.Firmware`` turns each simulator step into
+  CAN frames, ``gateway.pipeline.Pipeline`` decodes them and estimates; the recorder keeps raw
+  frames and everything the pipeline emits (samples, health, efforts) under their zenoh keys.
+- ``"batch"``: a fast offline stand-in (fast tests, long studies; not the product path): the
+  batch estimator (``gateway.estimator``) over the truth trace's MEASURED signals (F/T readings
+  with their bias and drift, encoder angles and rates, joint accelerations by a causal low-pass
+  differentiator; the base motion from the truth trace in place of the IMU path). It shows the
+  same fault signatures (an F/T bias moves every joint estimate of its arm and the thruster
+  wrench), without CAN. Efforts are recorded at ``batch_rate_hz``.
+
+``"auto"`` means ``pipeline``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+EPOCH_NS = 1_798_761_600_000_000_000       # 2027-01-01T00:00:00Z: session 0 of every series
+SESSION_SPACING_NS = 86_400 * 1_000_000_000  # one session a day
+SERIES_METADATA = "bsc.series"
+SERIES_FILE = "series.json"
+DEFAULT_DURATION_S = 8.0
+BASE_SEED = 1000
+
+
+@dataclass(frozen=True)
+class SeriesSpec:
+    """One degradation series. ``onset(n)``: first degraded session of an ``n``-session series
+    (``None`` for healthy). ``kind``/``target``: what ``bsc analyze`` must report (the truth the
+    detection delay is measured against). ``toml(k, onset, n)``: the session's scenario TOML
+    additions (friction per joint, ``[[degrade]]`` tables), ``truth(k, onset, n)``: the
+    degradation's size in that session, in named numbers."""
+
+    name: str
+    description: str
+    kind: str | None
+    target: str | None
+    toml: Callable[[int, int | None, int], str]
+    truth: Callable[[int, int | None, int], dict]
+
+    def onset(self, n: int) -> int | None:
+        return None if self.kind is None else default_onset(n)
+
+
+def default_onset(n: int) -> int:
+    """Onset session of an ``n``-session series: a third in, never before session 3 (the first
+    three are the change detector's baseline), never the last."""
+    if n < 5:
+        raise ValueError(f"a degradation series needs at least 5 sessions, got {n}")
+    return min(n - 2, max(3, math.ceil(n / 3)))
+
+
+# --- the table ------------------------------------------------------------------------------------
+
+FRICTION_JOINT = "arm0/j2"
+FRICTION_FROM, FRICTION_TO = 0.30, 0.60      # Coulomb friction, fraction of the joint's torque limit
+THRUSTER = 2                                  # the ring18 thruster that fires most in the capture task
+THRUSTER_FACTOR = 0.70                        # 30 % thrust loss
+FT_ARM = "arm0"
+FT_STEP_N = (6.0, -4.0, 0.0)                  # F/T bias added per session after onset, force, N
+FT_STEP_NM = (0.0, 0.0, 3.0)                  # moment, N m
+FT_DRIFT_S = 10.0                             # the step is the drift of this many seconds
+
+
+def _friction_fraction(k: int, onset: int | None, n: int) -> float:
+    if onset is None or k < onset:
+        return FRICTION_FROM
+    return FRICTION_FROM + (FRICTION_TO - FRICTION_FROM) * (k - onset + 1) / (n - onset)
+
+
+def _friction_toml(k, onset, n):
+    if onset is None or k < onset:
+        return ""
+    return f'[friction.per_joint]\n"{FRICTION_JOINT}" = {_friction_fraction(k, onset, n)!r}\n'
+
+
+def _thruster_toml(k, onset, n):
+    if onset is None or k < onset:
+        return ""
+    return (f'[[degrade]]\nkind = "thruster_loss"\nthruster = {THRUSTER}\nonset_s = 0.0\n'
+            f'factor = {THRUSTER_FACTOR!r}\n')
+
+
+def _ft_steps(k, onset) -> int:
+    return 0 if onset is None or k < onset else k - onset + 1
+
+
+def _ft_toml(k, onset, n):
+    steps = _ft_steps(k, onset)
+    if not steps:
+        return ""
+    # a drift at a constant rate that began steps * FT_DRIFT_S before this session's start
+    rate_f = [v / FT_DRIFT_S for v in FT_STEP_N]
+    rate_t = [v / FT_DRIFT_S for v in FT_STEP_NM]
+    return (f'[[degrade]]\nkind = "ft_bias_drift"\narm = "{FT_ARM}"\nonset_s = {-steps * FT_DRIFT_S!r}\n'
+            f'force_n_per_s = {rate_f!r}\ntorque_nm_per_s = {rate_t!r}\n')
+
+
+SERIES: dict[str, SeriesSpec] = {s.name: s for s in (
+    SeriesSpec("healthy", "no degradation: every session healthy (the false-alarm test)", None, None,
+               lambda k, o, n: "", lambda k, o, n: {}),
+    SeriesSpec("friction-growth",
+               f"Coulomb friction of {FRICTION_JOINT} climbs from {FRICTION_FROM:.0%} to {FRICTION_TO:.0%} of "
+               "its torque limit, in equal steps from the onset session to the last",
+               "actuator", FRICTION_JOINT, _friction_toml,
+               lambda k, o, n: {"coulomb_fraction": _friction_fraction(k, o, n)}),
+    SeriesSpec("thruster-loss",
+               f"thruster {THRUSTER} (ring18) delivers {THRUSTER_FACTOR:.0%} of its thrust from the onset session on",
+               "thruster", f"thruster{THRUSTER}", _thruster_toml,
+               lambda k, o, n: {"thrust_factor": THRUSTER_FACTOR if o is not None and k >= o else 1.0}),
+    SeriesSpec("ft-bias-drift",
+               f"the F/T sensor of {FT_ARM} drifts: +{list(FT_STEP_N)} N, +{list(FT_STEP_NM)} N m of bias per "
+               "session from the onset (a sensor fault, not an actuator fault)",
+               "sensor", FT_ARM, _ft_toml,
+               lambda k, o, n: {"force_bias_n": [v * _ft_steps(k, o) for v in FT_STEP_N],
+                                "torque_bias_nm": [v * _ft_steps(k, o) for v in FT_STEP_NM]}),
+)}
+
+
+# --- writing ----------------------------------------------------------------------------------------
+
+def session_path(out_dir: Path, k: int) -> Path:
+    return Path(out_dir) / f"session_{k:04d}.mcap"
+
+
+def session_toml(spec: SeriesSpec, k: int, n: int, duration_s: float) -> str:
+    onset = spec.onset(n)
+    return (f'# bsc series {spec.name!r}, session {k} of {n} (onset {onset})\n'
+            f'name = "capture-{spec.name}-{k:04d}"\nduration_s = {float(duration_s)!r}\n'
+            f'seed = {BASE_SEED + k}\n' + spec.toml(k, onset, n))
+
+
+def pick_backend(backend: str = "auto") -> str:
+    if backend not in ("auto", "pipeline", "batch"):
+        raise ValueError(f"backend {backend!r}: use auto, pipeline or batch")
+    return "pipeline" if backend == "auto" else backend
+
+
+def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
+                 duration_s: float = DEFAULT_DURATION_S, progress: bool = True, backend: str = "auto",
+                 workers: int | None = None, overwrite: bool = False, batch_rate_hz: float = 250.0,
+                 save_truth: bool = False) -> list[Path]:
+    """Write ``sessions`` recorded sessions of series ``name`` into ``out_dir``; the file paths.
+
+    Sessions run in parallel worker processes (``workers``, default: the CPU count). The
+    ground truth (onset, per-session degradation) goes to ``out_dir/series.json``; with
+    ``save_truth`` each session's full truth trace goes beside it (``session_XXXX.truth.npz``).
+    """
+    if name not in SERIES:
+        raise ValueError(f"no series {name!r} (series: {', '.join(SERIES)})")
+    spec = SERIES[name]
+    if sessions < 1:
+        raise ValueError("sessions must be at least 1")
+    if duration_s <= 0:
+        raise ValueError("duration_s must be positive")
+    onset = spec.onset(sessions)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [session_path(out, k) for k in range(sessions)]
+    if not overwrite:
+        existing = [p for p in paths if p.exists()]
+        if existing:
+            raise FileExistsError(f"{existing[0]} exists (overwrite=True replaces the series)")
+    backend = pick_backend(backend)
+    jobs = [(name, k, sessions, float(duration_s), str(paths[k]), backend, batch_rate_hz, save_truth)
+            for k in range(sessions)]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=sessions, unit="session", desc=f"series {name}", leave=False)
+    workers = max(1, min(workers or os.cpu_count() or 1, sessions))
+    try:
+        if workers == 1:
+            for job in jobs:
+                _session_job(job)
+                if bar is not None:
+                    bar.update(1)
+        else:
+            import concurrent.futures as cf
+            import multiprocessing
+
+            # forkserver: no inherited threads or sessions from the caller (tests, zenoh)
+            ctx = multiprocessing.get_context("forkserver")
+            with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                for fut in cf.as_completed([pool.submit(_session_job, j) for j in jobs]):
+                    fut.result()
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    truth = {"series": name, "description": spec.description, "sessions": sessions, "onset_session": onset,
+             "expected_kind": spec.kind, "expected_target": spec.target, "duration_s": float(duration_s),
+             "backend": backend, "files": [p.name for p in paths],
+             "per_session": [spec.truth(k, onset, sessions) for k in range(sessions)]}
+    (out / SERIES_FILE).write_text(json.dumps(truth, indent=1) + "\n")
+    return paths
+
+
+def _session_job(job) -> str:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    name, k, n, duration_s, path, backend, rate_hz, save_truth = job
+    spec = SERIES[name]
+    onset = spec.onset(n)
+    text = session_toml(spec, k, n, duration_s)
+    meta = {"series": name, "session_index": str(k), "sessions": str(n),
+            "onset_session": "" if onset is None else str(onset),
+            "start_ns": str(EPOCH_NS + k * SESSION_SPACING_NS), "backend": backend,
+            "truth": json.dumps(spec.truth(k, onset, n))}
+    if backend == "pipeline":
+        _record_pipeline(text, Path(path), meta, save_truth)
+    else:
+        _record_batch(text, Path(path), meta, rate_hz, save_truth)
+    return path
+
+
+def _load_scenario(text: str, path: Path):
+    from simulator import scenario
+
+    toml_path = path.with_suffix(".scenario.toml")
+    toml_path.write_text(text)
+    try:
+        return scenario.load(toml_path)
+    finally:
+        toml_path.unlink()
+
+
+def _record_pipeline(text: str, path: Path, meta: dict, save_truth: bool) -> None:
+    from gateway.pipeline import Pipeline
+    from gateway.recorder import Recorder
+    from simulator.engine import Simulation
+    from simulator.firmware import Firmware
+
+    sc = _load_scenario(text, path)
+    sim = Simulation(sc)
+    base = int(meta["start_ns"])
+    health_every = 500                 # steps: health reports every 0.5 s of sim time, as bsc gateway
+    with Recorder(path, overwrite=True, metadata={SERIES_METADATA: meta}) as rec:
+        rec.add_session_context(urdf_text=sim.robot.urdf, scenario_text=text,
+                                extra={"scenario": sc.name, "robot": sim.robot.name})
+        # log time = series start + sensor time: the efforts' own t_ns, not the emit order
+        pipe = Pipeline(sim.robot, emit=lambda key, obj: rec.record(key, obj, base + getattr(obj, "t_ns", 0)))
+        fw = Firmware(sim.robot)
+        while sim.k < sim.n_steps:
+            r = sim.step()
+            for bus, msg in fw.frames(r):
+                rec.record_can(bus, msg, base + r.t_ns)
+                pipe.feed(bus, msg)
+            if sim.k % health_every == 0:
+                pipe.emit_health(sim.k * 1_000_000)     # health t_ns: the frames' clock
+        pipe.flush()
+    if save_truth:
+        sim.trace.save(path.with_suffix(".truth.npz"))
+
+
+def _health_key(robot: str, h) -> str:
+    from gateway import keys
+    return keys.for_sample(robot, h)
+
+
+def batch_efforts(trace, robot, rate_hz: float = 250.0, warmup_s: float = 0.2):
+    """Efforts from a truth trace's measured signals with the batch estimator (the ``batch``
+    backend): ``(t_ns, [JointEfforts per arm], ThrusterEffort)`` tuples at ``rate_hz``."""
+    import numpy as np
+
+    from gateway.efforts import JointEfforts, ThrusterEffort
+    from gateway.estimator import (EstimatorModel, joint_torques_batch, joint_torques_simplified_batch,
+                                   thruster_wrench_batch)
+    from gateway.estimator.filters import lowpass_derivative
+
+    model = EstimatorModel.from_robot(robot)
+    q, dq = trace["enc_angle"], trace["enc_rate"]
+    ddq = lowpass_derivative(dq, 1000.0, 20.0)
+    ft = trace["ft_meas"]
+    v, acc = trace["v"], trace["base_acc"]
+    a_s, w_s, dw_s = acc[:, :3], v[:, 3:6], acc[:, 3:]
+    full = joint_torques_batch(model, q, dq, ddq, ft, a_s, w_s, dw_s)
+    simp = joint_torques_simplified_batch(model, q, ft)
+    thr = thruster_wrench_batch(model, ft, a_s, w_s, dw_s)
+    cmd, thr_cmd = trace["tau_cmd"], trace["thr_cmd"]
+    valves = trace["valves"]
+    every = max(1, round(1000.0 / rate_hz))
+    names = robot.joint_names
+    out = []
+    for i in range(0, trace.n, every):
+        t_ns = i * 1_000_000
+        good = i * 1e-3 >= warmup_s
+        flags = () if good else ("warmup",)
+        arms = []
+        for arm in model.arms:
+            cols = list(arm.columns)
+            arms.append(JointEfforts(
+                arm=arm.name, t_ns=t_ns, joints=tuple(names[c] for c in cols),
+                full_nm=tuple(float(x) for x in full[i, cols]), simplified_nm=tuple(float(x) for x in simp[i, cols]),
+                commanded_nm=tuple(float(x) for x in cmd[i, cols]), commanded_t_ns=t_ns,
+                rate_rad_s=tuple(float(x) for x in dq[i, cols]), good=good, flags=flags))
+        mask = int(np.dot(valves[i].astype(np.int64), 1 << np.arange(valves.shape[1], dtype=np.int64)))
+        te = ThrusterEffort(t_ns=t_ns, force_n=tuple(float(x) for x in thr[i, :3]),
+                            moment_nm=tuple(float(x) for x in thr[i, 3:]),
+                            commanded_force_n=tuple(float(x) for x in thr_cmd[i, :3]),
+                            commanded_moment_nm=tuple(float(x) for x in thr_cmd[i, 3:]),
+                            commanded_t_ns=t_ns, valves=mask, good=good, flags=flags)
+        out.append((t_ns, arms, te))
+    return out
+
+
+def _record_batch(text: str, path: Path, meta: dict, rate_hz: float, save_truth: bool) -> None:
+    from gateway import keys
+    from gateway.recorder import Recorder
+    from simulator.engine import Simulation
+
+    sc = _load_scenario(text, path)
+    sim = Simulation(sc)
+    trace = sim.run()
+    base = int(meta["start_ns"])
+    robot = sim.robot.name
+    with Recorder(path, overwrite=True, metadata={SERIES_METADATA: meta}) as rec:
+        rec.add_session_context(urdf_text=sim.robot.urdf, scenario_text=text,
+                                extra={"scenario": sc.name, "robot": robot})
+        for t_ns, arms, te in batch_efforts(trace, sim.robot, rate_hz):
+            for je in arms:
+                rec.record(keys.joint_efforts(robot, je.arm), je, base + t_ns)
+            rec.record(keys.thruster_effort(robot), te, base + t_ns)
+    if save_truth:
+        trace.save(path.with_suffix(".truth.npz"))
