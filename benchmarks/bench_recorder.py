@@ -51,18 +51,13 @@ def bench_recorder(path: Path, n: int, feed) -> tuple[float, float, int]:
     return n / (t1 - t0), n / (t2 - t0), stats.dropped
 
 
-def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=100_000, help="messages per case")
-    args = parser.parse_args(argv)
-
+def measure(n: int) -> dict:
+    """Every figure for ``n`` messages per case (files in a temporary directory)."""
     import can
 
     from drivers.samples import WrenchSample
     from gateway.recorder import can_frame_to_record, _encode
 
-    n = args.n
     frames = [can.Message(timestamp=1.0 + i * 1e-4, arbitration_id=0x100 + i % 8,
                           data=i.to_bytes(8, "little"), channel="vcan0") for i in range(n)]
     samples = [WrenchSample("arm0", 1_000_000_000 + i * 100_000, i, (0.1 * i, -2.0, 9.81),
@@ -85,15 +80,50 @@ def main(argv: list[str] | None = None) -> int:
         can_calls, can_sust, can_drop = bench_recorder(d / "can.mcap", n, feed_can)
         smp_calls, smp_sust, smp_drop = bench_recorder(d / "samples.mcap", n, feed_samples)
         sizes = {p.name: p.stat().st_size for p in d.iterdir()}
+    return {"n": n, "anchor": anchor, "can_calls": can_calls, "can_sust": can_sust,
+            "can_drop": can_drop, "smp_calls": smp_calls, "smp_sust": smp_sust,
+            "smp_drop": smp_drop, "can_bytes": sizes["can.mcap"] / n,
+            "smp_bytes": sizes["samples.mcap"] / n}
 
+
+def figures(quick: bool = False) -> list[dict]:
+    """The suite's rows: sustained recorder rates beside the python-can virtual bus (can the
+    recorder keep up with a bus?), and the recorder as a fraction of the bare mcap writer."""
+    from benchmarks.anchors import ratio, row
+
+    m = measure(20_000 if quick else 100_000)
+    n = m["n"]
+    return [
+        row("bare mcap Writer.add_message (pre-encoded)", m["anchor"], "msg/s",
+            anchor="can_virtual", ratio=ratio(m["anchor"], "can_virtual"),
+            note=f"{n} messages, chunk 128 KiB zstd"),
+        row("recorder raw CAN frames, sustained", m["can_sust"], "msg/s", anchor="can_virtual",
+            ratio=ratio(m["can_sust"], "can_virtual"),
+            note=f"{m['can_sust'] / m['anchor']:.2f}x the bare mcap writer; calls "
+                 f"{m['can_calls']:,.0f}/s; dropped {m['can_drop']}; {m['can_bytes']:.1f} B/msg"),
+        row("recorder typed samples, sustained", m["smp_sust"], "msg/s", anchor="can_virtual",
+            ratio=ratio(m["smp_sust"], "can_virtual"),
+            note=f"{m['smp_sust'] / m['anchor']:.2f}x the bare mcap writer; calls "
+                 f"{m['smp_calls']:,.0f}/s; dropped {m['smp_drop']}; {m['smp_bytes']:.1f} B/msg"),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=100_000, help="messages per case")
+    args = parser.parse_args(argv)
+
+    m = measure(args.n)
+    n, anchor = m["n"], m["anchor"]
     print(f"recorder benchmark, {n} messages per case, chunk 128 KiB zstd")
     print(f"  anchor  mcap Writer.add_message (pre-encoded): {anchor:>10,.0f} msg/s")
-    print(f"  raw CAN frames   record_can:  calls {can_calls:>10,.0f} msg/s   "
-          f"sustained {can_sust:>10,.0f} msg/s   ({can_sust / anchor:.2f} x anchor, "
-          f"dropped {can_drop}, {sizes['can.mcap'] / n:.1f} B/msg on disk)")
-    print(f"  typed samples    record:      calls {smp_calls:>10,.0f} msg/s   "
-          f"sustained {smp_sust:>10,.0f} msg/s   ({smp_sust / anchor:.2f} x anchor, "
-          f"dropped {smp_drop}, {sizes['samples.mcap'] / n:.1f} B/msg on disk)")
+    print(f"  raw CAN frames   record_can:  calls {m['can_calls']:>10,.0f} msg/s   "
+          f"sustained {m['can_sust']:>10,.0f} msg/s   ({m['can_sust'] / anchor:.2f} x anchor, "
+          f"dropped {m['can_drop']}, {m['can_bytes']:.1f} B/msg on disk)")
+    print(f"  typed samples    record:      calls {m['smp_calls']:>10,.0f} msg/s   "
+          f"sustained {m['smp_sust']:>10,.0f} msg/s   ({m['smp_sust'] / anchor:.2f} x anchor, "
+          f"dropped {m['smp_drop']}, {m['smp_bytes']:.1f} B/msg on disk)")
     return 0
 
 

@@ -148,29 +148,26 @@ def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
     return n, time.perf_counter() - t0
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=5.0, help="simulated session length")
-    ap.add_argument("--log", type=Path, help="replay this recorded session instead")
-    args = ap.parse_args(argv)
-
+def measure(seconds: float = 5.0, log: Path | None = None, say=print) -> dict:
+    """Make (or take) a session, then time read, read + pipeline and the full offline replay."""
     from gateway.replay import iter_can_frames, read_context, replay_offline, resolve_robot
 
     real = pipeline_class()
     if real is None:
-        print("bench_replay: needs gateway.pipeline (the drivers + estimator core) for the "
-              "target figure; it does not exist yet. Measuring the replay engine with a "
-              "drivers-only stand-in instead (NOT the target figure).")
+        say("bench_replay: needs gateway.pipeline (the drivers + estimator core) for the "
+            "target figure; it does not exist yet. Measuring the replay engine with a "
+            "drivers-only stand-in instead (NOT the target figure).")
     pipeline_cls = real or DriversOnly
     label = "real pipeline" if real else "drivers-only stand-in"
+    out = {"label": label, "real": real is not None, "seconds": seconds}
     with tempfile.TemporaryDirectory(prefix="bsc-bench-replay-") as tmp:
         tmp = Path(tmp)
-        log = args.log
         if log is None:
             log = tmp / "session.mcap"
-            n, wall = make_session(log, args.seconds, pipeline_cls)
-            print(f"session: {args.seconds:g} s simulated, {n} frames, recorded live in "
-                  f"{wall:.1f} s ({log.stat().st_size / 1e6:.1f} MB)")
+            n, wall = make_session(log, seconds, pipeline_cls)
+            out.update(made_frames=n, made_wall=wall, made_bytes=log.stat().st_size)
+            say(f"session: {seconds:g} s simulated, {n} frames, recorded live in "
+                f"{wall:.1f} s ({log.stat().st_size / 1e6:.1f} MB)")
         ctx = read_context(log)
         span = (ctx.end_ns - ctx.start_ns) / 1e9 if ctx.start_ns is not None else 0.0
 
@@ -186,15 +183,55 @@ def main(argv: list[str] | None = None) -> int:
         t_feed = time.perf_counter() - t0
 
         report = replay_offline(log, tmp / "out", pipeline_factory=pipeline_cls)
-        print(f"log: {span:.2f} s, {frames} frames ({frames / span:.0f} frames/s of log)")
-        print(f"{'stage':<28} {'wall s':>8} {'frames/s':>10} {'x real time':>12}")
-        for name, t in (("read", t_read), (f"read + {label}", t_feed),
-                        (f"full replay ({label})", report.wall_s)):
-            print(f"{name:<28} {t:>8.2f} {frames / t:>10.0f} {span / t:>12.1f}")
-        print(f"full replay: {report.samples} samples, {report.efforts} efforts, "
-              f"{report.health_reports} health, dropped {report.recorder['dropped']}")
-        print(f"target >= 100x real time: {'met' if report.speed_x_realtime >= 100 else 'MISSED'}"
-              + ("" if real else " (stand-in, not the target figure)"))
+    out.update(span=span, frames=frames, t_read=t_read, t_feed=t_feed, t_full=report.wall_s,
+               x_full=report.speed_x_realtime, samples=report.samples, efforts=report.efforts,
+               health=report.health_reports, dropped=report.recorder["dropped"])
+    return out
+
+
+TARGET_X = 100.0
+
+
+def figures(quick: bool = False) -> list[dict]:
+    """The suite's rows: x real time of the full offline replay (target >= 100x), and frames/s
+    of each stage beside cantools' per-frame decode (what one frame's work is measured against)."""
+    from benchmarks.anchors import ratio, row
+
+    m = measure(2.0 if quick else 5.0, say=lambda *_: None)
+    label = m["label"]
+    stand_in = "" if m["real"] else " (drivers-only stand-in, NOT the target figure)"
+    rows = [row(f"full offline replay ({label})", m["x_full"], "x real time",
+                target=">= 100x", ok=(m["x_full"] >= TARGET_X) if m["real"] else None,
+                note=f"{m['span']:.2f} s log of the default scenario, {m['frames']} frames; "
+                     f"{m['samples']} samples, {m['efforts']} efforts, dropped {m['dropped']}"
+                     + stand_in)]
+    for name, t in (("replay: MCAP read alone", m["t_read"]),
+                    (f"replay: read + {label}", m["t_feed"]),
+                    (f"replay: full ({label})", m["t_full"])):
+        rate = m["frames"] / t
+        rows.append(row(name, rate, "frames/s", anchor="cantools_decode",
+                        ratio=ratio(rate, "cantools_decode"),
+                        note=f"{m['span'] / t:.2f}x real time"))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=5.0, help="simulated session length")
+    ap.add_argument("--log", type=Path, help="replay this recorded session instead")
+    args = ap.parse_args(argv)
+
+    m = measure(args.seconds, args.log)
+    label, frames, span = m["label"], m["frames"], m["span"]
+    print(f"log: {span:.2f} s, {frames} frames ({frames / span:.0f} frames/s of log)")
+    print(f"{'stage':<28} {'wall s':>8} {'frames/s':>10} {'x real time':>12}")
+    for name, t in (("read", m["t_read"]), (f"read + {label}", m["t_feed"]),
+                    (f"full replay ({label})", m["t_full"])):
+        print(f"{name:<28} {t:>8.2f} {frames / t:>10.0f} {span / t:>12.1f}")
+    print(f"full replay: {m['samples']} samples, {m['efforts']} efforts, "
+          f"{m['health']} health, dropped {m['dropped']}")
+    print(f"target >= 100x real time: {'met' if m['x_full'] >= TARGET_X else 'MISSED'}"
+          + ("" if m["real"] else " (stand-in, not the target figure)"))
     return 0
 
 

@@ -24,19 +24,15 @@ import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 
 
-def main(argv: list[str] | None = None) -> int:
+def measure(seconds: float = 4.0, repeat: int = 3) -> dict:
+    """Best wall time of ``Simulation.run()`` of the capture scenario, and the anchors' costs."""
     from simulator import scenario
     from simulator.dynamics import Dynamics, Friction
     from simulator.engine import Simulation
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run")
-    ap.add_argument("--repeat", type=int, default=3)
-    args = ap.parse_args(argv)
-
-    sc = scenario.load("capture", {"duration_s": args.seconds})
+    sc = scenario.load("capture", {"duration_s": seconds})
     best = float("inf")
-    for _ in range(args.repeat):
+    for _ in range(repeat):
         sim = Simulation(sc)
         t0 = time.perf_counter()
         sim.run()
@@ -56,13 +52,48 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(steps):
         pin.aba(m, d, q, v, tau)
     t_aba = time.perf_counter() - t0
+    return {"seconds": seconds, "repeat": repeat, "steps": steps, "rtf": seconds / best,
+            "loop_us": best / steps * 1e6, "phys_us": t_phys / steps * 1e6,
+            "aba_us": t_aba / steps * 1e6}
 
-    per_step = best / steps * 1e6
+
+TARGET_RTF = 20.0
+
+
+def figures(quick: bool = False) -> list[dict]:
+    """The suite's rows: real-time factor (anchor: numpy batched products, a machine-speed
+    normaliser) and the per-step costs beside one Pinocchio ABA call of the same run."""
+    from benchmarks.anchors import ratio, row
+
+    m = measure(2.0 if quick else 4.0, 2 if quick else 3)
+    aba = "pin.aba call (this run)"
+    return [
+        row("simulator, simulated s per wall s", m["rtf"], "x real time", target=">= 20x",
+            ok=m["rtf"] >= TARGET_RTF, anchor="numpy_matmul", ratio=ratio(m["rtf"], "numpy_matmul"),
+            note=f"capture scenario, paper robot, 1 kHz, {m['seconds']:g} s simulated, "
+                 f"best of {m['repeat']}"),
+        row("simulator whole loop per step", m["loop_us"], "us", anchor=aba,
+            ratio=m["loop_us"] / m["aba_us"], note="ratio = loop cost in ABA calls"),
+        row("RK4 physics step alone", m["phys_us"], "us", anchor=aba,
+            ratio=m["phys_us"] / m["aba_us"]),
+        row("one pin.aba call", m["aba_us"], "us",
+            note="the local anchor of the two rows above"),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run")
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+
+    m = measure(args.seconds, args.repeat)
+    per_step, phys, aba = m["loop_us"], m["phys_us"], m["aba_us"]
     print(f"{'figure':44s} {'value':>12s}")
-    print(f"{'simulated s per wall s (whole loop, 1 kHz)':44s} {args.seconds / best:12.2f}   (target >= 20)")
+    print(f"{'simulated s per wall s (whole loop, 1 kHz)':44s} {m['rtf']:12.2f}   (target >= 20)")
     print(f"{'whole loop, us per step':44s} {per_step:12.1f}")
-    print(f"{'anchor: RK4 physics step alone, us':44s} {t_phys / steps * 1e6:12.1f}   ({per_step / (t_phys / steps * 1e6):.1f}x inside the loop)")
-    print(f"{'anchor: one pin.aba call, us':44s} {t_aba / steps * 1e6:12.2f}   (loop = {per_step / (t_aba / steps * 1e6):.0f} ABA calls)")
+    print(f"{'anchor: RK4 physics step alone, us':44s} {phys:12.1f}   ({per_step / phys:.1f}x inside the loop)")
+    print(f"{'anchor: one pin.aba call, us':44s} {aba:12.2f}   (loop = {per_step / aba:.0f} ABA calls)")
     return 0
 
 

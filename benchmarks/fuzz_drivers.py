@@ -262,6 +262,26 @@ def wire_map_for(robot: str) -> wire.WireMap:
     return wire.WireMap.from_robot(robot_description.load(robot))
 
 
+def figures(quick: bool = False, frames: int | None = None) -> list[dict]:
+    """The suite's rows (``python -m benchmarks --fuzz``): 1 M frames (100 k with ``quick``)
+    through every listener of paper_robot, beside cantools' per-frame decode."""
+    from benchmarks.anchors import ratio, row
+
+    n = frames or (100_000 if quick else 1_000_000)
+    rep = fuzz(wire_map_for("paper_robot"), n, seed=1)
+    n_exc = sum(rep.exceptions.values())
+    return [
+        row("fuzz: random + mutated frames through every listener", rep.frames_per_s, "frames/s",
+            anchor="cantools_decode", ratio=ratio(rep.frames_per_s, "cantools_decode"),
+            note=f"{rep.frames} frames, seed 1, {rep.samples} samples accepted, "
+                 f"{sum(rep.rejected.values())} rejections counted"),
+        row("fuzz: exceptions out of a driver", n_exc, "count", target="0", ok=n_exc == 0,
+            note=rep.first_failure or None),
+        row("fuzz: decoded samples breaking an invariant", rep.bad_samples, "count", target="0",
+            ok=rep.bad_samples == 0),
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.fuzz_drivers", description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=1_000_000, help="frames to feed (default 1000000)")

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("replay", "replay a log offline through drivers + estimator, or live onto CAN or zenoh"),
     "monitor": ("monitor", "live monitoring over zenoh: residuals, friction, efficiency, sensor health, alerts"),
     "analyze": ("analyze", "actuator and sensor degradation from recorded sessions: friction, efficiency, trends"),
+    "bench": ("bench", "run every benchmark: figures beside anchors of the same run, as ratios"),
 }
 
 
