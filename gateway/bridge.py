@@ -12,51 +12,109 @@ Threads: python-can runs one notifier thread per bus; each only tags the frame w
 puts it on one FIFO queue. ONE worker thread takes frames from that queue, in that order, through
 :class:`gateway.pipeline.Pipeline` (drivers, then the estimator) and publishes what comes out:
 decoded samples, efforts, health. The recorder (``record=``) gets the raw frames in exactly the
-order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte for byte. The queue is
-unbounded (the frame rate is bounded by the buses; ``backlog`` is its current length).
+order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte for byte.
+
+The queue is bounded: at most ``max_backlog`` frames (default :data:`DEFAULT_MAX_BACKLOG` = 10 000,
+0.75 s of the paper robot's nominal 13 400 frames/s, about 0.5 s of work for the worker at
+~50 us per frame; ~180 bytes per waiting frame). A notifier thread never blocks: when the backlog reaches ``max_backlog`` the service sheds load,
+dropping every arriving frame until the backlog is back to ``resume_backlog`` (90 % of it), so
+what gets through comes in contiguous runs that still make complete estimator epochs. Every
+frame is counted per bus: ``received = processed + dropped + in the queue`` (exactly; after
+:meth:`drain` nothing is in the queue). Drops show in :attr:`stats` and in each bus's health as
+the rejection reason ``overflow``; the drivers see them as lost samples.
+
+A bus whose ``recv`` raises (an adapter unplugged, a SocketCAN link down, a bus shut down under
+the gateway) does not stop the others: the error is logged once per outage and counted
+(``rx_error`` in the bus's health, :attr:`stats`), the notifier retries with a backoff (10 ms
+doubling to ``retry_s``), and the bus is up again at its next frame. If ``reopen(bus_name) ->
+can.BusABC`` is given, a bus still failing after ``retry_s`` is replaced by a new one from
+``reopen`` (retried every ``retry_s`` until it succeeds); :meth:`replace_bus` does the same on
+request. The service shuts down the buses it got from ``reopen``, never the caller's.
 
 Publish time travels as the zenoh attachment ``publish_ns`` (decimal ASCII), so that payloads of
 a replay are identical to the live ones.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import logging
 import queue
 import threading
 import time
-from typing import Mapping
+from typing import Callable, Mapping
 
 import can
 
 from drivers import wire
+from drivers.samples import BusHealth
 from gateway import codec
 from gateway.pipeline import Pipeline
 
 log = logging.getLogger(__name__)
 _STOP = object()
+DEFAULT_MAX_BACKLOG = 10_000         # frames waiting for the worker (all buses together)
+RESUME_FRACTION = 0.9                # after an overflow, accept frames again below this fill
+FIRST_BACKOFF_S = 0.01               # first wait after a failed recv; doubles up to retry_s
+OVERFLOW_LOG_EVERY_S = 10.0
 
 
 class GatewayError(Exception):
     """Root of the gateway service's errors."""
 
 
-class _Tagger(can.Listener):
-    __slots__ = ("bus", "put")
+class BusState:
+    """What the service knows of one bus: frame accounting and failures (plain ints, written by
+    the bus's notifier thread or the worker, read from anywhere)."""
 
-    def __init__(self, bus: str, put):
-        self.bus, self.put = bus, put
+    __slots__ = ("name", "received", "dropped", "processed", "rx_errors", "reopened", "reopen_failures",
+                 "down_since", "last_error", "backoff_s", "last_attempt", "outages")
+
+    def __init__(self, name: str):
+        self.name = name
+        self.received = self.dropped = self.processed = 0
+        self.rx_errors = self.reopened = self.reopen_failures = self.outages = 0
+        self.down_since: float | None = None      # time.monotonic() of the first error of an outage
+        self.last_error = ""
+        self.backoff_s = 0.0
+        self.last_attempt = 0.0
+
+    def as_dict(self) -> dict:
+        return {"received": self.received, "processed": self.processed, "dropped": self.dropped,
+                "rx_errors": self.rx_errors, "outages": self.outages, "down": self.down_since is not None,
+                "reopened": self.reopened, "reopen_failures": self.reopen_failures, "last_error": self.last_error}
+
+
+class _Tagger(can.Listener):
+    """One bus's listener: hands each frame to the service (never blocks) and turns a failing
+    ``recv`` into a counted, logged, backed-off retry instead of a dead notifier thread."""
+
+    __slots__ = ("state", "offer", "failed", "wake", "retired")
+
+    def __init__(self, state: BusState, offer, failed):
+        self.state, self.offer, self.failed = state, offer, failed
+        self.wake = threading.Event()          # set to cut a backoff short (stop, replace)
+        self.retired = False
 
     def on_message_received(self, msg: can.Message) -> None:
-        self.put((self.bus, msg))
+        self.offer(self.state, msg)
+
+    def on_error(self, exc: Exception) -> None:
+        if self.retired:
+            return
+        self.wake.wait(self.failed(self.state, exc))
 
     def stop(self) -> None:
-        """Nothing to release."""
+        self.retired = True
+        self.wake.set()
 
 
 class GatewayService:
     def __init__(self, robot, buses: Mapping[str, can.BusABC], session, *, fd: bool = False,
                  health_period_s: float = 0.5, stale_periods: int = 10, estimate: bool = True,
-                 model_robot=None, layout=None, record=None, publish_samples: bool = True):
+                 model_robot=None, layout=None, record=None, publish_samples: bool = True,
+                 max_backlog: int = DEFAULT_MAX_BACKLOG, reopen: Callable[[str], can.BusABC] | None = None,
+                 retry_s: float = 0.5):
         if isinstance(robot, wire.WireMap):                # a wire map names a built-in robot
             import robot_description
 
@@ -65,6 +123,10 @@ class GatewayService:
         missing = set(wire_map.buses) - set(buses)
         if missing:
             raise GatewayError(f"no CAN bus given for {', '.join(sorted(missing))}")
+        if not (isinstance(max_backlog, int) and max_backlog >= 1):
+            raise GatewayError(f"max_backlog must be a positive number of frames, got {max_backlog!r}")
+        if not retry_s > 0:
+            raise GatewayError(f"retry_s must be > 0, got {retry_s!r}")
         self.wire = wire_map
         self.robot = wire_map.robot
         self.buses = dict(buses)
@@ -75,14 +137,29 @@ class GatewayService:
         self.publish_samples = publish_samples
         self.pipeline = Pipeline(robot, emit=self._emit, model_robot=model_robot, layout=layout,
                                  fd=fd, estimate=estimate, stale_periods=stale_periods)
+        self.max_backlog = max_backlog
+        self.resume_backlog = int(max_backlog * RESUME_FRACTION)
+        self.retry_s = float(retry_s)
+        self.reopen = reopen
+        self.bus_state = {name: BusState(name) for name in self.wire.buses}
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._notifiers: list[can.Notifier] = []
+        self._qlock = threading.Lock()           # admission: size check + put + counters, per frame
+        self._shedding = False
+        self.peak_backlog = 0
+        self.overflow_episodes = 0
+        self._overflow_logged = -OVERFLOW_LOG_EVERY_S
+        self._notifiers: dict[str, tuple[can.Notifier, _Tagger]] = {}
+        self._owned: set[int] = set()            # id() of the buses this service opened (reopen)
+        self._bus_lock = threading.RLock()       # notifier start/stop/replace
+        self._stopping = threading.Event()
         self._worker: threading.Thread | None = None
+        self._supervisor: threading.Thread | None = None
         self._publishers: dict[str, object] = {}
         self._lock = threading.Lock()            # the pipeline is used by the worker and by health ticks
         self._closed = False
         self.published = 0
         self.publish_errors = 0
+        self.pipeline_errors = 0
 
     # --- lifecycle ---------------------------------------------------------------------------
 
@@ -92,9 +169,13 @@ class GatewayService:
         if self._worker is None:
             self._worker = threading.Thread(target=self._work, name="bsc-gateway-worker", daemon=True)
             self._worker.start()
-            for name, bus in self.buses.items():
-                if name in self.wire.buses:
-                    self._notifiers.append(can.Notifier(bus, [_Tagger(name, self._queue.put)], timeout=0.1))
+            with self._bus_lock:
+                for name in self.wire.buses:
+                    self._listen(name, self.buses[name])
+            if self.reopen is not None:
+                self._supervisor = threading.Thread(target=self._supervise, name="bsc-gateway-supervisor",
+                                                    daemon=True)
+                self._supervisor.start()
         return self
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
@@ -119,12 +200,22 @@ class GatewayService:
         if self._closed:
             return
         self._closed = True
-        for n in self._notifiers:
-            n.stop()
-        self._notifiers.clear()
+        self._stopping.set()
+        with self._bus_lock:
+            for notifier, tagger in self._notifiers.values():
+                tagger.stop()
+                notifier.stop()
+            self._notifiers.clear()
+        if self._supervisor is not None:
+            self._supervisor.join(30.0)
         if self._worker is not None:
             self._queue.put(_STOP)
             self._worker.join(30.0)
+        with self._bus_lock:
+            for bus in self.buses.values():
+                if id(bus) in self._owned:
+                    self._shutdown(bus)
+            self._owned.clear()
         with self._lock:
             pubs, self._publishers = list(self._publishers.values()), {}
         for p in pubs:
@@ -139,6 +230,118 @@ class GatewayService:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    # --- buses: admission, failures, replacement --------------------------------------------
+
+    def _listen(self, name: str, bus: can.BusABC) -> None:
+        tagger = _Tagger(self.bus_state[name], self._offer, self._failed)
+        self._notifiers[name] = (can.Notifier(bus, [tagger], timeout=0.1), tagger)
+
+    def _offer(self, st: BusState, msg: can.Message) -> None:
+        """A notifier thread's frame: into the queue, or dropped and counted. Never blocks."""
+        with self._qlock:
+            st.received += 1
+            n = self._queue.qsize()
+            if self._shedding:
+                if n > self.resume_backlog:
+                    st.dropped += 1
+                    return
+                self._shedding = False
+            elif n >= self.max_backlog:
+                self._shedding = True
+                self.overflow_episodes += 1
+                st.dropped += 1
+                self._log_overflow()
+                return
+            self._queue.put((st, msg))
+            if n >= self.peak_backlog:
+                self.peak_backlog = n + 1
+        if st.down_since is not None:
+            self._back_up(st)
+
+    def _log_overflow(self) -> None:
+        now = time.monotonic()
+        if now - self._overflow_logged >= OVERFLOW_LOG_EVERY_S:
+            self._overflow_logged = now
+            log.warning("gateway backlog full (%d frames): dropping frames until it is down to %d "
+                        "(dropped so far: %s)", self.max_backlog, self.resume_backlog,
+                        ", ".join(f"{s.name} {s.dropped}" for s in self.bus_state.values()))
+
+    def _failed(self, st: BusState, exc: Exception) -> float:
+        """A notifier thread's ``recv`` raised: count, log once per outage, return the backoff."""
+        st.rx_errors += 1
+        if st.down_since is None:
+            st.down_since = time.monotonic()
+            st.outages += 1
+            st.last_error = repr(exc)
+            st.backoff_s = FIRST_BACKOFF_S
+            log.warning("CAN bus %s: receive failed (%r); the other buses continue, retrying%s",
+                        st.name, exc, " and reopening" if self.reopen is not None else "")
+        else:
+            st.backoff_s = min(2 * st.backoff_s, self.retry_s)
+        return st.backoff_s
+
+    def _back_up(self, st: BusState) -> None:
+        since = st.down_since
+        if since is None:
+            return
+        st.down_since = None
+        log.warning("CAN bus %s: receiving again after %.2f s (%d receive errors so far)",
+                    st.name, time.monotonic() - since, st.rx_errors)
+
+    def _supervise(self) -> None:
+        """Replace buses that keep failing (only with ``reopen``)."""
+        while not self._stopping.wait(min(self.retry_s / 4, 0.1)):
+            now = time.monotonic()
+            for st in self.bus_state.values():
+                since = st.down_since
+                if since is None or now - since < self.retry_s or now - st.last_attempt < self.retry_s:
+                    continue
+                st.last_attempt = now
+                try:
+                    bus = self.reopen(st.name)
+                except Exception as exc:  # noqa: BLE001 - the bus is still away: try again later
+                    st.reopen_failures += 1
+                    log.debug("reopen %s: %r", st.name, exc)
+                    continue
+                try:
+                    self.replace_bus(st.name, bus, _owned=True)
+                except GatewayError:
+                    self._shutdown(bus)             # closing: the new bus is not wanted any more
+                    return
+
+    def replace_bus(self, name: str, bus: can.BusABC, *, _owned: bool = False) -> None:
+        """Listen on ``bus`` instead of the current bus ``name`` (e.g. a bus that went away and
+        was opened again). The old bus's notifier is stopped; the old bus is shut down only if
+        this service opened it. The bus counts as up again at its first frame."""
+        if name not in self.bus_state:
+            raise GatewayError(f"no bus {name!r} (buses: {', '.join(self.bus_state)})")
+        with self._bus_lock:
+            if self._closed:
+                raise GatewayError("the gateway service is closed")
+            old = self._notifiers.pop(name, None)
+            if old is not None:
+                notifier, tagger = old
+                tagger.stop()
+                notifier.stop()
+            prev = self.buses.get(name)
+            if prev is not None and id(prev) in self._owned and prev is not bus:
+                self._owned.discard(id(prev))
+                self._shutdown(prev)
+            self.buses[name] = bus
+            if _owned:
+                self._owned.add(id(bus))
+            st = self.bus_state[name]
+            st.reopened += 1
+            st.backoff_s = 0.0
+            if self._worker is not None:
+                self._listen(name, bus)
+        log.warning("CAN bus %s: listening on a new bus object (%s)", name, getattr(bus, "channel_info", bus))
+
+    @staticmethod
+    def _shutdown(bus: can.BusABC) -> None:
+        with contextlib.suppress(Exception):
+            bus.shutdown()
+
     # --- the worker --------------------------------------------------------------------------
 
     def _work(self) -> None:
@@ -152,16 +355,34 @@ class GatewayService:
             if isinstance(item, threading.Event):
                 item.set()
                 continue
-            bus, msg = item
+            st, msg = item
             with self._lock:
+                st.processed += 1
                 if rec is not None:
-                    rec.record_can(bus, msg, int(msg.timestamp * 1e9))
+                    rec.record_can(st.name, msg, int(msg.timestamp * 1e9))
                 self._frame_ns = int(msg.timestamp * 1e9)
-                feed(bus, msg)
+                try:
+                    feed(st.name, msg)
+                except Exception:  # noqa: BLE001 - a bug behind one frame must not stop the gateway
+                    self.pipeline_errors += 1
+                    if self.pipeline_errors <= 10:
+                        log.exception("pipeline error on a frame of bus %s (counted; continuing)", st.name)
 
     @property
     def backlog(self) -> int:
+        """Frames waiting for the worker (at most ``max_backlog``)."""
         return self._queue.qsize()
+
+    @property
+    def stats(self) -> dict:
+        """Frame accounting per bus (``received = processed + dropped + in the queue``), bus
+        failures, and the backlog: plain data, safe to read from any thread."""
+        return {"buses": {name: st.as_dict() for name, st in self.bus_state.items()},
+                "received": sum(st.received for st in self.bus_state.values()),
+                "processed": sum(st.processed for st in self.bus_state.values()),
+                "dropped": sum(st.dropped for st in self.bus_state.values()),
+                "backlog": self.backlog, "peak_backlog": self.peak_backlog, "max_backlog": self.max_backlog,
+                "overflow_episodes": self.overflow_episodes, "pipeline_errors": self.pipeline_errors}
 
     # --- hooks -------------------------------------------------------------------------------
 
@@ -193,10 +414,22 @@ class GatewayService:
             log.debug("put %s: %r", key, exc)
 
     def health(self, now_ns: int | None = None) -> list:
-        """Snapshots of every bus and device (also resets the measured-load window)."""
+        """Snapshots of every bus and device (also resets the measured-load window). A bus's
+        ``rejected`` also holds the gateway's own counts when non-zero: ``overflow`` (frames
+        dropped because the backlog was full) and ``rx_error`` (receive calls that raised)."""
         now = time.time_ns() if now_ns is None else now_ns
         with self._lock:
-            return self.pipeline.health(now)
+            out = self.pipeline.health(now)
+        for i, h in enumerate(out):
+            st = self.bus_state.get(getattr(h, "bus", None)) if isinstance(h, BusHealth) else None
+            if st is not None and (st.dropped or st.rx_errors):
+                rej = dict(h.rejected)
+                if st.dropped:
+                    rej["overflow"] = st.dropped
+                if st.rx_errors:
+                    rej["rx_error"] = st.rx_errors
+                out[i] = dataclasses.replace(h, rejected=tuple(sorted(rej.items())))
+        return out
 
     def publish_health(self) -> None:
         if self._closed:
