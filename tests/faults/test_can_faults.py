@@ -482,11 +482,10 @@ def _lockstep_result(run: Lockstep) -> Result:
         while seen < len(inbox.efforts) < published and time.monotonic() < end:
             seen = len(inbox.efforts)                 # wait while efforts keep coming
             inbox.wait(lambda: len(inbox.efforts) >= published, 5.0)
-        # zenoh drops a put rather than block the publisher when its queue is full (the default
-        # congestion control): on this loaded host up to ~1.5 % of the efforts never arrive. The
-        # checks apply to every effort that did.
+        # efforts are published with congestion control BLOCK (gateway.bridge): none may be lost
+        # on the way (with zenoh's default, DROP, up to ~3 % were, silently)
         print(f"\nefforts received on zenoh: {len(inbox.efforts)} of {published} published")
-        assert len(inbox.efforts) >= 0.9 * published, f"{len(inbox.efforts)} efforts received, {published} published"
+        assert len(inbox.efforts) == published, f"{len(inbox.efforts)} efforts received, {published} published"
         return Result(run, inbox)
 
 
