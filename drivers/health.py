@@ -69,6 +69,17 @@ class DeviceCounters:
         self.last_counter = counter
         return True
 
+    def admit(self, counter: int, t_ns: int, saturated: bool, status: int) -> bool:
+        """:meth:`sequence` then, if the sample is kept, :meth:`accept`: one call per sample."""
+        if not self.sequence(counter):
+            return False
+        self.samples += 1
+        self.last_t_ns = t_ns
+        self.status = status
+        if saturated:
+            self.saturated += 1
+        return True
+
     def accept(self, t_ns: int, saturated: bool, status: int) -> None:
         self.samples += 1
         self.last_t_ns = t_ns

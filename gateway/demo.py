@@ -3,12 +3,18 @@
 ``run_live`` is the path a user deploys, in one process with no external server:
 simulator -> sensor firmware -> python-can ``virtual`` buses -> :class:`GatewayService`
 (drivers + estimator, one worker thread) -> zenoh (a router on loopback) -> a zenoh subscriber
-session that collects the efforts. Lockstep: the simulator waits when the gateway is more than
-``LEAD_NS`` of simulated time behind, so nothing queues without bound.
+session that collects the efforts. Lockstep, per bus: every ``LOCKSTEP_NS`` of simulated time the
+simulator waits until the gateway has taken every frame it sent on EVERY bus up to the previous
+such point, so nothing queues without bound and no bus lags the others by more than about two
+intervals (beyond ``max_open`` = 20 ms the estimator's sync policy would declare the lagging bus
+silent: on a loaded machine one notifier thread can be starved that long).
+
+With nothing late, the live efforts are the ones :func:`run_offline` computes from the same
+frames, bit for bit (the sync policy makes the result independent of how buses interleave).
 
 ``run_offline`` is the same frames through the same :class:`Pipeline` without buses or zenoh
-(deterministic, for the noise sweep and the wrong-model run). ``accuracy`` turns estimates and
-truth into the figures of ``report.json``.
+(deterministic, for the noise sweep); ``run_frames`` feeds recorded frames (the live run's, for
+the wrong-model run). ``accuracy`` turns estimates and truth into the figures of ``report.json``.
 """
 from __future__ import annotations
 
@@ -23,7 +29,8 @@ import numpy as np
 from gateway.efforts import JointEfforts, ThrusterEffort
 
 AXES = ("fx", "fy", "fz", "mx", "my", "mz")
-LEAD_NS = 20_000_000                  # lockstep: the simulator may run this far ahead of the gateway
+LOCKSTEP_NS = 5_000_000               # lockstep check every 5 ms of simulated time (see run_live)
+QUIET_S = 2.0                         # after the run: no new effort for this long = the rest were lost
 JUDGE_FRACTION = 0.05                 # channels below 5 % of the largest peak of their kind: not judged
 TARGETS = {"force": 0.01, "moment": 0.02, "simplified_first_joint": 0.02, "full": 0.02}
 BAND_HZ = 20.0
@@ -102,6 +109,20 @@ def run_offline(scenario, *, model_robot=None, layout=None):
     return sim.trace, col.est, pl.stats
 
 
+def run_frames(robot, frames, n_steps: int, *, model_robot=None, layout=None):
+    """Recorded ``(bus, can.Message)`` frames -> the same :class:`Pipeline` as :func:`run_offline`
+    (e.g. the frames of a live run again, with a deliberately wrong model). Returns (Estimates, stats)."""
+    from gateway.pipeline import Pipeline
+
+    col = Collector(robot, n_steps)
+    pl = Pipeline(robot, emit=lambda key, obj: col.add(obj), model_robot=model_robot, layout=layout)
+    feed = pl.feed
+    for bus, msg in frames:
+        feed(bus, msg)
+    pl.flush()
+    return col.est, pl.stats
+
+
 def free_port() -> int:
     import socket
 
@@ -110,8 +131,27 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_live(scenario, *, record: Path | None = None, progress: bool = False, timeout_s: float = 120.0):
-    """The deployed path in one process (see the module docstring). Returns (trace, Estimates, info)."""
+class _CountingBus:
+    """A transmit bus that counts what was sent on it (for the per-bus lockstep) and, when given
+    a list, keeps ``(bus, frame)`` in send order."""
+
+    __slots__ = ("bus", "name", "sent", "keep")
+
+    def __init__(self, bus, name: str, keep: list | None):
+        self.bus, self.name, self.sent, self.keep = bus, name, 0, keep
+
+    def send(self, msg, timeout=None) -> None:
+        self.bus.send(msg, timeout=timeout)
+        self.sent += 1
+        if self.keep is not None:
+            self.keep.append((self.name, msg))
+
+
+def run_live(scenario, *, record: Path | None = None, progress: bool = False, timeout_s: float = 120.0,
+             frames: list | None = None):
+    """The deployed path in one process (see the module docstring). Returns (trace, Estimates, info).
+    ``frames``: a list that receives every ``(bus, can.Message)`` sent, in order (for
+    :func:`run_frames`)."""
     import zenoh
 
     from gateway import keys
@@ -135,33 +175,85 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
         from gateway.replay import session_context
         rec.add_session_context(**session_context(robot, scenario_text=scenario.text))
     t0 = time.perf_counter()
+    waits = {"lockstep_s": 0.0, "gave_up": 0}
     try:
         with zenoh.open(make_config(mode="router", listen=[ep])) as gw_session, \
                 zenoh.open(make_config(mode="client", connect=[ep])) as sub_session, \
                 open_buses(robot, "virtual", prefix) as tx, \
                 open_buses(robot, "virtual", prefix) as rx:
-            sub = sub_session.declare_subscriber(keys.efforts(robot.name), _decoder(col))
+            # efforts queue up in zenoh (Rust, no GIL) and are decoded here in batches: a Python
+            # callback would hold the receiving thread on the GIL, and the gateway's publishers
+            # drop (they never block the gateway) when zenoh's queues fill up behind it
+            sub = sub_session.declare_subscriber(keys.efforts(robot.name), zenoh.handlers.FifoChannel(1 << 22))
+            take = _decoder(col)
+
+            def drain() -> None:
+                while (sample := sub.try_recv()) is not None:
+                    take(sample)
+
             time.sleep(0.3)                       # the subscription reaches the router
             layout = ThrusterLayout.from_config(scenario.cfg.thrusters)
+            counting = {name: _CountingBus(bus, name, frames) for name, bus in tx.items()}
             with GatewayService(robot, rx, gw_session, layout=layout, record=rec, publish_samples=True) as gw:
+                states = [(b, gw.bus_state[name]) for name, b in counting.items()]
+                marks = {name: 0 for name in counting}
+
+                def catch_up(goals) -> None:
+                    """Wait until the gateway took every frame up to ``goals[bus]`` on every bus."""
+                    w0 = time.perf_counter()
+                    for b, st in states:
+                        last_progress, seen = w0, -1
+                        while st.processed + st.dropped < goals[st.name]:
+                            time.sleep(0.0002)
+                            done = st.processed + st.dropped
+                            if done != seen:
+                                seen, last_progress = done, time.perf_counter()
+                            elif time.perf_counter() - last_progress > 5.0:
+                                waits["gave_up"] += 1         # a frame the bus never delivered
+                                break
+                    waits["lockstep_s"] += time.perf_counter() - w0
+
                 def throttle(r):
-                    if r.t_ns % 10_000_000 == 0:
-                        while r.t_ns - gw._frame_ns > LEAD_NS and gw.backlog:
-                            time.sleep(0.0005)
-                trace = run_on_buses(sim, tx, firmware=fw, progress=progress, on_step=throttle)
+                    if r.t_ns % LOCKSTEP_NS:
+                        return
+                    if r.t_ns % 100_000_000 == 0:
+                        drain()
+                    catch_up(marks)                 # up to the previous check
+                    for b, st in states:
+                        marks[st.name] = b.sent
+                trace = run_on_buses(sim, counting, firmware=fw, progress=progress, on_step=throttle)
+                catch_up({st.name: b.sent for b, st in states})
                 gw.drain()
-            epochs = gw.pipeline.stats["epochs"]
+                # efforts published so far (the epochs still open are computed when the service
+                # closes, after its publishers are gone: they are not on zenoh)
+                epochs = gw.pipeline.stats["epochs"]
             col.expected = epochs * (len(robot.arms) + 1)
-            col.done.wait(timeout_s if col.count < col.expected else 0)
+            # wait for the last efforts; stop early when none has come for QUIET_S (lost on the way:
+            # the gateway's publishers drop rather than block when zenoh's queues are full)
+            deadline = time.monotonic() + timeout_s
+            last, quiet_since = -1, time.monotonic()
+            while True:
+                drain()
+                now = time.monotonic()
+                if col.count >= col.expected or now > deadline or now - quiet_since > QUIET_S:
+                    break
+                if col.count != last:
+                    last, quiet_since = col.count, now
+                time.sleep(0.01)
             sub.undeclare()
             info.update(gw.pipeline.stats)
             info["published"] = gw.published
+            info["gateway"] = {k: v for k, v in gw.stats.items() if k != "buses"}
     finally:
         if rec is not None:
             rec.close()
             info["recording"] = str(record)
             info["recorded_messages"] = rec.stats.written
     info["wall_s"] = round(time.perf_counter() - t0, 2)
+    info["lockstep_wait_s"] = round(waits["lockstep_s"], 2)
+    if waits["gave_up"]:
+        info["lockstep_gave_up"] = waits["gave_up"]
+    info["efforts_expected"] = col.expected
     info["efforts_received"] = col.count
     return trace, col.est, info
 

@@ -15,13 +15,18 @@ from typing import Callable
 import can
 
 from drivers import wire
-from drivers.devices import listeners_for
+from drivers.devices import BusDispatcher, listeners_for
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import keys
+from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.estimator.live import LiveEstimator, LiveSettings
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
 Emit = Callable[[str, object], None]
+# the attribute that picks the key of a sample type (None: one key for the type)
+_KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "device", JointEfforts: "arm",
+             ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None}
 
 
 class Pipeline:
@@ -41,8 +46,11 @@ class Pipeline:
             monitor, drivers = listeners_for(spec, self._on_sample, fd, stale_periods)
             self._listeners[name] = [monitor, *drivers]
         self.monitors = {b: ls[0] for b, ls in self._listeners.items()}
+        self._feeders = {b: BusDispatcher(ls[0], ls[1:]).feed for b, ls in self._listeners.items()}
         self.estimator = (LiveEstimator(model_robot or robot, self._on_effort, layout=layout, settings=settings)
                           if estimate else None)
+        self._add = self.estimator.add if self.estimator is not None else None
+        self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.frames = 0
         self.unknown_bus = 0
         self.samples = 0
@@ -50,28 +58,39 @@ class Pipeline:
 
     def feed(self, bus: str, msg: can.Message) -> None:
         """One raw frame from ``bus``. Never raises on bad frames (they are counted by reason)."""
-        listeners = self._listeners.get(bus)
-        if listeners is None:
+        feeder = self._feeders.get(bus)
+        if feeder is None:
             self.unknown_bus += 1
             return
         self.frames += 1
-        for listener in listeners:
-            listener.on_message_received(msg)
+        feeder(msg)
 
     def flush(self) -> None:
         """End of input: compute the epochs still waiting for members."""
         if self.estimator is not None:
             self.estimator.flush()
 
+    def _key(self, obj) -> str:
+        """``keys.for_sample`` (each key expression is built and checked once, then cached)."""
+        cls = obj.__class__
+        attr = _KEY_ATTR.get(cls, False)
+        if attr is False:                        # another type: not cached
+            return keys.for_sample(self.name, obj)
+        k = cls if attr is None else (cls, getattr(obj, attr))
+        key = self._keys.get(k)
+        if key is None:
+            key = self._keys[k] = keys.for_sample(self.name, obj)
+        return key
+
     def _on_sample(self, sample) -> None:
         self.samples += 1
-        self.emit(keys.for_sample(self.name, sample), sample)
-        if self.estimator is not None:
-            self.estimator.add(sample)
+        self.emit(self._key(sample), sample)
+        if self._add is not None:
+            self._add(sample)
 
     def _on_effort(self, effort) -> None:
         self.efforts += 1
-        self.emit(keys.for_sample(self.name, effort), effort)
+        self.emit(self._key(effort), effort)
 
     def health(self, now_ns: int) -> list:
         """Snapshots of every bus and device (resets the measured-load window)."""

@@ -35,6 +35,7 @@ import enum
 import json
 import os
 import socket
+import struct
 import sys
 import threading
 import time
@@ -226,6 +227,33 @@ def _json_default(obj: Any) -> Any:
 # a recording keeps what the gateway saw, and our reader reads them back.
 _ENCODER = json.JSONEncoder(separators=(",", ":"), default=_json_default)
 _encode = _ENCODER.encode
+
+try:    # the C encoder JSONEncoder.encode builds on every call, built once (no cycle check: the
+        # records are flat frozen dataclasses); same bytes as _encode
+    from json.encoder import c_make_encoder as _c_make_encoder, encode_basestring_ascii as _ascii
+
+    _c_encode = _c_make_encoder(None, _json_default, _ascii, None, ":", ",", False, False, True) \
+        if _c_make_encoder is not None else None
+except ImportError:  # pragma: no cover - CPython always has it
+    _c_encode = None
+_DATACLASS_JSON: dict[type, Any] = {}
+
+
+def _dataclass_json(cls: type):
+    """``f(sample) -> str``: ``_encode({field: value, ...})`` for one dataclass type."""
+    f = _DATACLASS_JSON.get(cls)
+    if f is None:
+        names = _field_names(cls)
+        if _c_encode is None or not all(n.isidentifier() for n in names):
+            def f(sample, names=names):
+                return _encode({n: getattr(sample, n) for n in names})
+        else:
+            ns = {"c": _c_encode, "join": "".join}
+            exec("def f(o):\n    return join(c({" + ", ".join(f"{n!r}: o.{n}" for n in names)  # noqa: S102
+                 + "}, 0))\n", ns)
+            f = ns["f"]
+        _DATACLASS_JSON[cls] = f
+    return f
 
 
 # ----------------------------------------------------------------------------- statistics
@@ -443,9 +471,8 @@ class Recorder:
             if cls is not info.cls:
                 raise TypeError(f"topic {topic}: expected {info.cls.__name__}, "
                                 f"got {cls.__name__}")
-            names = _field_names(cls)
-            data = _encode({n: getattr(sample, n) for n in names})
-            t = sample.t_ns if log_time_ns is None and "t_ns" in names else log_time_ns
+            data = _dataclass_json(cls)(sample)
+            t = sample.t_ns if log_time_ns is None and "t_ns" in _field_names(cls) else log_time_ns
         elif isinstance(sample, Mapping):
             data = _encode(sample)
             t = sample.get("t_ns") if log_time_ns is None else log_time_ns
@@ -717,8 +744,7 @@ class Recorder:
         key, log_time, publish_time, data = item
         seq = self._sequences[key]
         self._sequences[key] = seq + 1
-        self._writer.add_message(self._channel_ids[key], log_time, data, publish_time,
-                                 seq & 0xFFFFFFFF)
+        self._add_message(self._channel_ids[key], log_time, data, publish_time, seq & 0xFFFFFFFF)
         self._written += 1
         if self._pending_msgs == 0:
             self._chunk_started = time.monotonic()
@@ -806,6 +832,7 @@ class Recorder:
         # ends, so it knows exactly which messages are on disk (stats.flushed).
         writer = Writer(stream, chunk_size=1 << 62, compression=self._compression)
         self._writer = writer
+        self._add_message = _fast_add_message(writer) or writer.add_message
         self._file_started = time.monotonic()
         self._pending_msgs = self._pending_bytes = 0
         writer.start(profile="", library=f"bsc-recorder ({_library_id()})")
@@ -869,6 +896,58 @@ class Recorder:
                 pass                      # the first error is the one worth reporting
             self._stream = None
         self._writer = None
+
+
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")     # opcode, record length, channel, sequence, log/publish time
+
+
+def _fast_add_message(writer):
+    """``Writer.add_message`` of mcap 1.x without building a ``Message`` record object per call:
+    the same statistics, chunk message index and record bytes (one ``struct.pack``). Only for a
+    chunked writer whose chunks this recorder ends (``chunk_size`` 2**62, so ``add_message``
+    never finalises a chunk itself); ``None`` when the library's internals are not the expected
+    ones (then the caller uses ``writer.add_message``)."""
+    try:
+        from mcap.opcode import Opcode
+        from mcap.records import MessageIndex
+
+        cb = writer._Writer__chunk_builder
+        st = writer._Writer__statistics
+        rw = cb.record_writer
+        buf = rw._buffer                      # replaced by a new BytesIO after every chunk
+        if (writer._Writer__chunk_size < 1 << 62 or not isinstance(cb.message_indices, dict)
+                or not hasattr(buf, "tell") or not isinstance(st.channel_message_counts, dict)
+                or not all(hasattr(cb, a) for a in ("num_messages", "message_start_time", "message_end_time"))
+                or not all(hasattr(st, a) for a in ("message_count", "message_start_time", "message_end_time"))):
+            return None
+    except (AttributeError, ImportError):
+        return None
+    pack = _MESSAGE_HEAD.pack
+    indices, counts = cb.message_indices, st.channel_message_counts
+    op = int(Opcode.MESSAGE)
+
+    def add_message(channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+        if st.message_count == 0:
+            st.message_start_time = log_time
+        else:
+            st.message_start_time = min(log_time, st.message_start_time)
+        st.message_end_time = max(log_time, st.message_end_time)
+        counts[channel_id] += 1
+        st.message_count += 1
+        if cb.num_messages == 0:
+            cb.message_start_time = log_time
+        else:
+            cb.message_start_time = min(cb.message_start_time, log_time)
+        cb.message_end_time = max(cb.message_end_time, log_time)
+        index = indices.get(channel_id)
+        if not index:
+            index = indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+        buf = rw._buffer
+        index.records.append((log_time, buf.tell()))
+        cb.num_messages += 1
+        buf.write(pack(op, 22 + len(data), channel_id, sequence, log_time, publish_time))
+        buf.write(data)
+    return add_message
 
 
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}

@@ -228,6 +228,30 @@ def _chunk_messages(chunk, chans: Mapping[int, Any]) -> list[tuple[int, int, byt
 _CHANNEL_ID = struct.Struct("<H")
 
 
+class _ChunkHead(NamedTuple):
+    """The fields of a Chunk record (``mcap.records.Chunk`` without building one)."""
+
+    message_start_time: int
+    message_end_time: int
+    uncompressed_size: int
+    uncompressed_crc: int
+    compression: str
+    data: bytes
+
+
+_CHUNK_FIXED = struct.Struct("<QQQII")        # start, end, uncompressed size, crc, compression length
+_U64 = struct.Struct("<Q")
+_OP_MESSAGE_INDEX, _OP_CHUNK, _OP_DATA_END, _OP_FOOTER = 0x07, 0x06, 0x0F, 0x02
+_RECORD_LIMIT = 4 * 2 ** 30                   # the mcap StreamReader's default record size limit
+
+
+def _chunk_head(body: bytes) -> _ChunkHead:
+    start, end, size, crc, clen = _CHUNK_FIXED.unpack_from(body, 0)
+    compression = str(body[32:32 + clen], "utf-8")
+    (dlen,) = _U64.unpack_from(body, 32 + clen)
+    return _ChunkHead(start, end, size, crc, compression, body[40 + clen:40 + clen + dlen])
+
+
 def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], bool] | None = None,
                     start_ns: int | None = None, end_ns: int | None = None
                     ) -> Iterator[tuple[str, str, Any]]:
@@ -236,13 +260,21 @@ def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], boo
 
     ``want(topic, schema_name)`` selects channels; ``[start_ns, end_ns)`` selects log times
     (chunks wholly outside are skipped without decompressing them).
+
+    Records are walked here rather than by the library's StreamReader: message index records
+    (two integers per message, after every chunk) are skipped unread, chunks are parsed with
+    ``struct``; every other record (rare) goes through the library's parser.
     """
-    from mcap.records import Channel, Chunk, DataEnd, Message, Schema
+    import io
+
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
     from mcap.stream_reader import StreamReader, breakup_chunk
 
     path = Path(path)
     schemas: dict[int, str] = {}
     chans: dict[int, tuple[str, str] | None] = {}
+    known_ops = {int(op) for op in Opcode}
 
     def register(rec) -> None:
         if isinstance(rec, Channel):
@@ -250,6 +282,10 @@ def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], boo
             chans[rec.id] = (rec.topic, name) if want is None or want(rec.topic, name) else None
         elif isinstance(rec, Schema):
             schemas[rec.id] = rec.name
+
+    def corrupt(exc) -> McapFileError:
+        return McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
+                             "copies everything that is intact")
 
     with open(path, "rb") as f:
         # Channel and schema records live inside chunks (written before first use): take them
@@ -267,13 +303,27 @@ def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], boo
             for ch in summary.channels.values():
                 register(ch)
         f.seek(0)
-        records = StreamReader(f, emit_chunks=True).records
+        if f.read(len(mcaplog.MAGIC)) != mcaplog.MAGIC:
+            raise corrupt("bad magic bytes")
+        read, unpack_head = f.read, _RECORD.unpack
         while True:
+            head = read(9)
+            if len(head) < 9:
+                raise corrupt("end of file before the data end record")
+            op, length = unpack_head(head)
+            if length > _RECORD_LIMIT:
+                raise corrupt(f"record of {length} bytes")
+            if op == _OP_MESSAGE_INDEX:
+                f.seek(length, 1)
+                continue
+            body = read(length)
+            if len(body) < length:
+                raise corrupt("end of file inside a record")
+            if op == _OP_DATA_END or op == _OP_FOOTER:
+                return
             try:
-                rec = next(records, None)
-                if rec is None or isinstance(rec, DataEnd):
-                    return
-                if isinstance(rec, Chunk):
+                if op == _OP_CHUNK:
+                    rec = _chunk_head(body)
                     if ((end_ns is not None and rec.message_start_time >= end_ns)
                             or (start_ns is not None and rec.message_end_time < start_ns)):
                         continue
@@ -285,12 +335,15 @@ def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], boo
                                     and (end_ns is None or t < end_ns)):
                                 yield ch[0], ch[1], _Msg(t, data)
                         continue
-                    inner = breakup_chunk(rec, validate_crc=True)
+                    inner = breakup_chunk(Chunk(**rec._asdict()), validate_crc=True)
+                elif op not in known_ops:
+                    continue                        # unknown record types are skipped
                 else:
-                    inner = (rec,)
+                    one = StreamReader(io.BytesIO(head + body), skip_magic=True, emit_chunks=True,
+                                       record_size_limit=None).records
+                    inner = (next(one),)
             except mcaplog._PARSE_ERRORS as exc:
-                raise McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
-                                    "copies everything that is intact") from exc
+                raise corrupt(exc) from exc
             for r in inner:
                 if isinstance(r, Message):
                     ch = chans.get(r.channel_id)
@@ -298,6 +351,8 @@ def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], boo
                     if (ch is not None and (start_ns is None or t >= start_ns)
                             and (end_ns is None or t < end_ns)):
                         yield ch[0], ch[1], r
+                elif isinstance(r, (DataEnd, Footer)):
+                    return
                 else:
                     register(r)
 
@@ -312,6 +367,18 @@ def _json(path: Path, topic: str, data: bytes) -> dict[str, Any]:
     return obj
 
 
+# The recorder's bsc.CanFrame JSON (recorder.can_frame_to_record through its encoder), exactly;
+# a record in any other form (another writer, a string channel with escapes) goes through json.
+_INT = rb"(-?(?:0|[1-9][0-9]*))"
+_BOOL = rb"(true|false)"
+_CAN_RECORD = re.compile(
+    rb'\{"t_ns":' + _INT + rb',"arbitration_id":' + _INT + rb',"is_extended_id":' + _BOOL
+    + rb',"is_remote_frame":' + _BOOL + rb',"is_error_frame":' + _BOOL + rb',"is_fd":' + _BOOL
+    + rb',"bitrate_switch":' + _BOOL + rb',"error_state_indicator":' + _BOOL + rb',"is_rx":' + _BOOL
+    + rb',"dlc":' + _INT + rb',"data":"([A-Za-z0-9+/=]*)","channel":(null|' + _INT[1:-1]
+    + rb'|"[ !#-\[\]-~]*")\}')
+
+
 def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
                     can_ids: Iterable[int] | None = None, start_ns: int | None = None,
                     end_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
@@ -320,6 +387,10 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
     ``t_ns`` is the log time (the frame's own timestamp); ``msg.timestamp`` is ``t_ns / 1e9``,
     which rounds back to exactly ``t_ns``.
     """
+    import base64
+
+    import can
+
     bus_set = None if buses is None else {CAN_TOPIC_PREFIX + b for b in buses}
     id_set = None if can_ids is None else frozenset(can_ids)
 
@@ -328,7 +399,37 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
                 and (bus_set is None or topic in bus_set))
 
     cut = len(CAN_TOPIC_PREFIX)
+    match = _CAN_RECORD.fullmatch
+    b64 = base64.b64decode
+    Message = can.Message
+    true = b"true"
+    buses_of: dict[str, str] = {}
     for topic, _, m in iter_file_order(path, want, start_ns, end_ns):
+        bus = buses_of.get(topic)
+        if bus is None:
+            bus = buses_of[topic] = topic[cut:]
+        g = match(m.data)
+        if g is not None:          # the same values json.loads + can_frame_from_record would give
+            (t_ns, ident, ext, rtr, err, fd, brs, esi, rx, dlc, data, channel) = g.groups()
+            ident = int(ident)
+            if id_set is not None and ident not in id_set:
+                continue
+            try:
+                payload = b64(data, validate=True)
+            except ValueError as exc:
+                raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
+            if channel == b"null":
+                channel = None
+            elif channel[:1] == b'"':
+                channel = channel[1:-1].decode("ascii")
+            else:
+                channel = int(channel)
+            msg = Message(timestamp=int(t_ns) / 1e9, arbitration_id=ident, is_extended_id=ext == true,
+                          is_remote_frame=rtr == true, is_error_frame=err == true, is_fd=fd == true,
+                          bitrate_switch=brs == true, error_state_indicator=esi == true, is_rx=rx == true,
+                          dlc=int(dlc), data=payload, channel=channel)
+            yield bus, m.log_time, msg
+            continue
         rec = _json(path, topic, m.data)
         if id_set is not None and rec.get("arbitration_id") not in id_set:
             continue
@@ -336,7 +437,7 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
             msg = can_frame_from_record(rec)
         except (KeyError, TypeError, ValueError) as exc:
             raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
-        yield topic[cut:], m.log_time, msg
+        yield bus, m.log_time, msg
 
 
 # ----------------------------------------------------------------------------- robots

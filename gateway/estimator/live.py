@@ -29,15 +29,16 @@ from typing import Callable
 import numpy as np
 
 from drivers import wire
+from drivers.frames import builder
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway.efforts import JointEfforts, ThrusterEffort
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
-from .model import EstimatorModel, cross
+from .model import EstimatorModel
+from .model import solve as _solve
 from .thrusters import ThrusterFilter, ThrusterFilterSettings
-from .torques import joint_accelerations_from_ft, joint_torques, joint_torques_simplified
-from .wrench import arm_reaction
+from .torques import LiveTorques
 
 
 @dataclass(frozen=True)
@@ -47,15 +48,21 @@ class LiveSettings:
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
 
 
-@dataclass
 class _Epoch:
-    t_ns: int
-    ft: dict = field(default_factory=dict)          # arm -> WrenchSample
-    joints: dict = field(default_factory=dict)      # "<arm>/<joint>" -> JointSample
-    valves: ValveCommand | None = None
+    __slots__ = ("t_ns", "ft", "joints", "valves", "open")
+
+    def __init__(self, t_ns: int, open_: bool = True):
+        self.t_ns = t_ns
+        self.ft: dict = {}                 # arm -> WrenchSample
+        self.joints: dict = {}             # "<arm>/<joint>" -> JointSample
+        self.valves: ValveCommand | None = None
+        self.open = open_                  # False: a throw-away epoch for a sample too late to use
 
 
 Output = Callable[[object], None]
+
+_MEMBER = {WrenchSample: 0, JointSample: 1, ValveCommand: 2}
+_SLOW = (ImuSample, TorqueCommand, ThrusterCommand)
 
 
 class LiveEstimator:
@@ -94,60 +101,100 @@ class LiveEstimator:
         self.epochs = 0
         self.good = 0
         self.late = 0
+        # precomputed for _compute
+        self._torques = LiveTorques(self.model, self.data)
+        self._AsT = self.model.A_s_all.T
+        self._n_arms, self._n_joints = len(self.arms), len(self.joint_names)
+        self._joint_arm = [name.split("/", 1)[0] for name in self.joint_names]
+        self._arm_spans = []                     # (arm, joint names tuple, names list, col, n)
+        col = 0
+        for a in self.arms:
+            names = self.arm_joints[a]
+            self._arm_spans.append((a, tuple(names), names, col, len(names)))
+            col += len(names)
+        self._valves_cache: dict[int, np.ndarray] = {}
+        self._no_valves = np.zeros(self.layout.n)
+        self._no_valves.setflags(write=False)
+        self._stale_imu_ns = self.settings.stale_periods * self.imu_period_ns
+        self._I, self._mass_s = self.model.inertia_s, self.model.mass_s
+        self._joint_efforts = builder(JointEfforts)       # same objects as the constructors, faster
+        self._thruster_effort = builder(ThrusterEffort)
 
     # -- input -------------------------------------------------------------------------------
     def add(self, sample) -> None:
-        if isinstance(sample, WrenchSample):
-            self._member(sample.t_ns).ft[sample.device] = sample
-        elif isinstance(sample, JointSample):
-            self._member(sample.t_ns).joints[sample.device] = sample
-        elif isinstance(sample, ValveCommand):
-            self._member(sample.t_ns).valves = sample
-        elif isinstance(sample, (ImuSample, TorqueCommand, ThrusterCommand)):
-            self._pending.append(sample)
-            return
+        kind = _MEMBER.get(sample.__class__)
+        if kind is None:
+            if isinstance(sample, WrenchSample):
+                kind = 0
+            elif isinstance(sample, JointSample):
+                kind = 1
+            elif isinstance(sample, ValveCommand):
+                kind = 2
+            elif isinstance(sample, _SLOW):
+                self._pending.append(sample)
+                return
+            else:
+                return
+        e = self._member(sample.t_ns)
+        if kind == 0:
+            e.ft[sample.device] = sample
+        elif kind == 1:
+            e.joints[sample.device] = sample
         else:
-            return
-        self._advance()
+            e.valves = sample
+        self._advance(e)
 
     def _member(self, t: int) -> _Epoch:
-        for e in self._open:
-            if abs(e.t_ns - t) < self.half:
+        half = self.half
+        opened = self._open
+        for e in opened:
+            if abs(e.t_ns - t) < half:
                 return e
-        if t <= self._last_closed + self.half:
+        if t <= self._last_closed + half:
             self.late += 1
-            return _Epoch(t)                       # a throw-away epoch: too late to be used
+            return _Epoch(t, False)                # a throw-away epoch: too late to be used
         e = _Epoch(t)
-        self._open.append(e)
-        self._open.sort(key=lambda x: x.t_ns)
+        if not opened or opened[-1].t_ns < t:      # (kept sorted by time)
+            opened.append(e)
+        else:
+            k = 0
+            while opened[k].t_ns <= t:
+                k += 1
+            opened.insert(k, e)
         return e
 
     def _complete(self, e: _Epoch) -> bool:
-        return (e.valves is not None and len(e.ft) == len(self.arms)
-                and len(e.joints) == len(self.joint_names))
+        return (e.valves is not None and len(e.ft) == self._n_arms
+                and len(e.joints) == self._n_joints)
 
-    def _advance(self) -> None:
-        done = [i for i, e in enumerate(self._open) if self._complete(e)]
-        last = done[-1] if done else -1
-        if len(self._open) - (last + 1) > self.settings.max_open:
-            last = len(self._open) - self.settings.max_open - 1
+    def _advance(self, touched: _Epoch) -> None:
+        # Every open epoch but ``touched`` was incomplete after its last change (complete ones are
+        # computed at once), so the last complete one, if any, is ``touched``.
+        opened = self._open
+        last = opened.index(touched) if touched.open and self._complete(touched) else -1
+        max_open = self.settings.max_open
+        if len(opened) - (last + 1) > max_open:
+            last = len(opened) - max_open - 1
         if last < 0:
             return
-        ready, self._open = self._open[:last + 1], self._open[last + 1:]
+        ready, self._open = opened[:last + 1], opened[last + 1:]
         for e in ready:
+            e.open = False
             self._compute(e)
 
     def flush(self) -> None:
         """Compute every waiting epoch with what it has (end of a log or of a run)."""
         ready, self._open = self._open, []
         for e in ready:
+            e.open = False
             self._compute(e)
 
     # -- one epoch ---------------------------------------------------------------------------
     def _apply_pending(self, t: int) -> None:
         keep = []
+        lim = t - self.half
         for s in self._pending:
-            if s.t_ns > t - self.half:
+            if s.t_ns > lim:
                 keep.append(s)
             elif isinstance(s, ImuSample):
                 self.kf.imu(s.t_ns, np.asarray(s.accel_m_s2), np.asarray(s.rate_rad_s))
@@ -165,85 +212,111 @@ class LiveEstimator:
         if fault:
             self._faults.add(f"fault:{device}")
 
+    def _valves(self, e: _Epoch) -> np.ndarray:
+        if e.valves is None:
+            return self._no_valves
+        mask = e.valves.valves
+        v = self._valves_cache.get(mask)
+        if v is None:
+            v = ((mask >> self._shifts) & 1).astype(float)
+            v.setflags(write=False)
+            if len(self._valves_cache) < 4096:
+                self._valves_cache[mask] = v
+        return v
+
     def _compute(self, e: _Epoch) -> None:
         t = e.t_ns
-        self._last_closed = max(self._last_closed, t)
+        if t > self._last_closed:
+            self._last_closed = t
         self.epochs += 1
         self._faults = set()
-        common: set[str] = set()
-        self._apply_pending(t)
-        common |= self._faults
+        if self._pending:
+            self._apply_pending(t)
+        common: set[str] = set(self._faults)
         if self._gyro_t is None:
             common.add("warmup")
-        elif t - self._gyro_t > self.settings.stale_periods * self.imu_period_ns:
+        elif t - self._gyro_t > self._stale_imu_ns:
             common.add("stale:imu")
         if e.valves is None:
             common.add("missing:valves")
-        arm_flags: dict[str, set] = {a: set() for a in self.arms}
-        p = len(self.arms)
-        ft = np.zeros((p, 6))
-        for k, a in enumerate(self.arms):
-            w = e.ft.get(a)
+        arm_flags: dict[str, set] | None = None
+        row: list[float] = []
+        efts = e.ft
+        for a in self.arms:
+            w = efts.get(a)
             if w is None:
+                arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"missing:{a}")
+                row += (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
                 continue
-            ft[k, :3], ft[k, 3:] = w.force_n, w.torque_nm
+            row += w.force_n
+            row += w.torque_nm
             if w.saturated:
+                arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"saturated:{a}")
             if w.status & wire.FT_FAULT:
+                arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"fault:{a}")
+        ft = np.array(row, dtype=float).reshape(self._n_arms, 6)
+        ejs = e.joints
+        q, dq = self._q, self._dq
         for i, name in enumerate(self.joint_names):
-            js = e.joints.get(name)
-            arm = name.split("/", 1)[0]
+            js = ejs.get(name)
             if js is None:
-                arm_flags[arm].add(f"stale:{name}" if self._have_joint[i] else f"missing:{name}")
+                arm_flags = arm_flags or {x: set() for x in self.arms}
+                arm_flags[self._joint_arm[i]].add(f"stale:{name}" if self._have_joint[i] else f"missing:{name}")
                 continue
-            self._q[i], self._dq[i] = js.angle_rad, js.rate_rad_s
+            q[i] = js.angle_rad
+            dq[i] = js.rate_rad_s
             self._have_joint[i] = True
             if js.saturated:
-                arm_flags[arm].add(f"saturated:{name}")
+                arm_flags = arm_flags or {x: set() for x in self.arms}
+                arm_flags[self._joint_arm[i]].add(f"saturated:{name}")
             if js.status & wire.DRIVE_FAULT:
-                arm_flags[arm].add(f"fault:{name}")
+                arm_flags = arm_flags or {x: set() for x in self.arms}
+                arm_flags[self._joint_arm[i]].add(f"fault:{name}")
 
-        valves = np.zeros(self.layout.n) if e.valves is None else ((e.valves.valves >> self._shifts) & 1).astype(float)
-        arm_w = arm_reaction(self.model, ft)
-        thr = self.kf.wrench(valves)
-        self.kf.push_epoch(t, arm_w, valves)
-        m, I = self.model, self.model.inertia_s
-        w_s = self.kf.w
-        a_s = (thr[:3] + arm_w[:3]) / m.mass_s
-        dw_s = np.linalg.solve(I, thr[3:] + arm_w[3:] - cross(w_s, I @ w_s))
-        q, dq = self._q, self._dq
-        simp = joint_torques_simplified(m, self.data, q, ft)
-        ddq = joint_accelerations_from_ft(m, self.data, q, dq, ft, a_s, w_s, dw_s)
-        full = joint_torques(m, self.data, q, dq, ddq, ft, a_s, w_s, dw_s)
+        valves = self._valves(e)
+        arm_w = -(ft.reshape(-1) @ self._AsT)                      # arm_reaction(model, ft)
+        kf = self.kf
+        thr = kf.wrench(valves)
+        kf.push_epoch(t, arm_w, valves)
+        # base motion (element-wise work on Python floats: the same double operations in the
+        # same order as the numpy form (thr + arm) / m, (thr + arm) - w x (I w))
+        I, ms = self._I, self._mass_s
+        w_s = kf.w
+        t0, t1, t2, t3, t4, t5 = thr_l = thr.tolist()
+        f0, f1, f2, f3, f4, f5 = arm_w.tolist()
+        a_s = [(t0 + f0) / ms, (t1 + f1) / ms, (t2 + f2) / ms]
+        w0, w1, w2 = w_s.tolist()
+        i0, i1, i2 = (I @ w_s).tolist()
+        dw_s = _solve(I, np.array([(t3 + f3) - (w1 * i2 - w2 * i1), (t4 + f4) - (w2 * i0 - w0 * i2),
+                                   (t5 + f5) - (w0 * i1 - w1 * i0)]))
+        simp, _, full = self._torques.epoch(q, dq, ft, a_s, w_s, dw_s)
 
         # a missing or bad F/T sample corrupts the base motion, so every arm's full estimate
-        ft_flags = {f for f in set().union(*arm_flags.values()) if "/" not in f}
-        common |= ft_flags
-        col = 0
-        for a in self.arms:
-            names = self.arm_joints[a]
-            n = len(names)
-            flags = tuple(sorted(common | arm_flags[a]))
-            cmds = [self._cmd.get(j) for j in names]
-            have = all(c is not None for c in cmds)
-            self.out(JointEfforts(
-                arm=a, t_ns=t, joints=tuple(names),
-                full_nm=tuple(float(x) for x in full[col:col + n]),
-                simplified_nm=tuple(float(x) for x in simp[col:col + n]),
-                commanded_nm=tuple(float(c[0]) for c in cmds) if have else (),
-                commanded_t_ns=min(c[1] for c in cmds) if have else 0,
-                rate_rad_s=tuple(float(x) for x in dq[col:col + n]),
-                good=not flags, flags=flags))
-            col += n
+        if arm_flags is not None:
+            common |= {f for f in set().union(*arm_flags.values()) if "/" not in f}
+        full_l, simp_l, dq_l = full.tolist(), simp.tolist(), dq.tolist()
+        cmd = self._cmd
+        out = self.out
+        make = self._joint_efforts
+        for a, names_t, names, col, n in self._arm_spans:
+            flags = tuple(sorted(common | arm_flags[a])) if arm_flags is not None else (
+                tuple(sorted(common)) if common else ())
+            cmds = [cmd.get(j) for j in names]
+            have = None not in cmds
+            out(make(a, t, names_t, tuple(full_l[col:col + n]), tuple(simp_l[col:col + n]),
+                     tuple([float(c[0]) for c in cmds]) if have else (),
+                     min([c[1] for c in cmds]) if have else 0,
+                     tuple(dq_l[col:col + n]), not flags, flags))
         flags = tuple(sorted(common))
         tc = self._thr_cmd
         good = not flags
         self.good += good
-        self.out(ThrusterEffort(
-            t_ns=t, force_n=tuple(float(x) for x in thr[:3]), moment_nm=tuple(float(x) for x in thr[3:]),
-            commanded_force_n=tc.force_n if tc else (0.0, 0.0, 0.0),
-            commanded_moment_nm=tc.moment_nm if tc else (0.0, 0.0, 0.0),
-            commanded_t_ns=tc.t_ns if tc else 0, valves=tc.valves if tc else 0,
-            good=good, flags=flags))
+        out(self._thruster_effort(
+            t, tuple(thr_l[:3]), tuple(thr_l[3:]),
+            tc.force_n if tc else (0.0, 0.0, 0.0),
+            tc.moment_nm if tc else (0.0, 0.0, 0.0),
+            tc.t_ns if tc else 0, tc.valves if tc else 0,
+            good, flags))

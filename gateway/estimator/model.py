@@ -189,3 +189,38 @@ class EstimatorData:
         self.v = np.zeros(pm.nv)
         self.a = np.zeros(pm.nv)
         self.A_tau = np.zeros((self.model.n_joints, 6))
+
+
+# --- LAPACK without the Python wrappers ----------------------------------------------------------
+# ``np.linalg.solve`` / ``lstsq`` spend most of their time on a small system in argument checks.
+# These call the same gufuncs with the same arguments, so the results are the same bits. numpy's
+# wrappers turn the gufunc's "invalid" floating-point signal (singular matrix, SVD not converging)
+# into ``LinAlgError``; here it raises ``FloatingPointError`` and the numpy function is called
+# again, which then raises exactly as before.
+from numpy.linalg import _umath_linalg as _ul  # noqa: E402
+
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def _errstate():
+    return np.errstate(invalid="raise", over="ignore", divide="ignore", under="ignore")
+
+
+def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(a, b)`` for float64 arrays, ``a`` (m, m), ``b`` (m,) or (m, k)."""
+    try:
+        with _errstate():
+            return (_ul.solve1 if b.ndim == 1 else _ul.solve)(a, b, signature="dd->d")
+    except FloatingPointError:
+        return np.linalg.solve(a, b)
+
+
+def lstsq1(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.lstsq(a, b, rcond=None)[0]`` for float64 ``a`` (m, n) with m > 0 and ``b`` (m,)."""
+    m, n = a.shape
+    try:
+        with _errstate():
+            x = _ul.lstsq(a, b[:, None], _EPS * max(n, m), signature="ddd->ddid")[0]
+    except FloatingPointError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+    return x[:, 0]

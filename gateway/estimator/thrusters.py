@@ -41,7 +41,8 @@ import numpy as np
 
 from robot_description.thrusters import ThrusterLayout
 
-from .model import EstimatorModel, cross, skew
+from .model import EstimatorModel, skew
+from .model import solve as _solve
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,27 @@ class ThrusterFilter:
         self._last_update_ns: int | None = None
         self.updates = 0
         self.w = np.zeros(3)                        # latest gyro rate, body frame
+        # Scratch for imu(): H is written in place (rows 0-2 accelerometer, 3-5 gyro difference;
+        # H[:3] is itself a C-contiguous (3, ns) array, used when there is no gyro row), the
+        # constant bias columns once. The valve columns are the products np.kron would form.
+        ns = self.ns
+        self._H = np.zeros((6, ns))
+        self._H[:3, 6 * n:] = self.Ha
+        self._H[3:, 6 * n + 3:] = np.eye(3)
+        self._Ha_valves = self._H[:3, :6 * n].reshape(3, n, 6)
+        self._Hw_valves = self._H[3:, :6 * n].reshape(3, n, 6)
+        if not (np.shares_memory(self._Ha_valves, self._H) and np.shares_memory(self._Hw_valves, self._H)):
+            raise RuntimeError("numpy copied instead of viewing the valve columns of H")
+        self._Ha_b = self.Ha[:, None, :]
+        self._E_b = np.hstack([np.zeros((3, 3)), np.eye(3)])[:, None, :]
+        self._R3 = np.diag(np.full(3, self.r_acc))
+        self._R6 = np.diag(np.concatenate([np.full(3, self.r_acc), self.r_mom]))
+        self._y = np.empty(6)
+        self._sym = np.empty((ns, ns))              # the other buffer of the symmetrised P
+        self._rl = self.r.tolist()
+        self._Iinv_T = self.I_inv.T
+        self._step_ns = self.dt * 1e9
+        self._W = self.W
 
     # -- the estimate ----------------------------------------------------------------------------
     @property
@@ -120,7 +142,10 @@ class ThrusterFilter:
 
     def wrench(self, valves: np.ndarray) -> np.ndarray:
         """Thruster wrench ``[f; tau]`` for the open valves ``valves`` (n,) of one step."""
-        return valves @ self.W
+        W = self._W
+        if W.base is not self.x:                    # x replaced from outside: a fresh view
+            W = self._W = self.W
+        return valves @ W
 
     def efficiency(self) -> np.ndarray:
         """Per thruster: estimated thrust along the nominal direction / nominal thrust."""
@@ -131,23 +156,32 @@ class ThrusterFilter:
         """Record one step: the arms' wrench on the spacecraft and the valves open during it."""
         self._hist.append((t_ns, arm_wrench, valves))
 
-    def _steps(self, t_end_ns: int, count: int) -> list | None:
+    def _steps(self, t_end_ns: float, count: int) -> list | None:
         """The last ``count`` recorded steps ending at ``t_end_ns`` (oldest first), or None if any is missing."""
         step = self.dt * 1e9
+        half = 0.5 * step
         out = []
-        hist = list(self._hist)
+        hist = self._hist
         for j in range(count - 1, -1, -1):
             t = t_end_ns - j * step
-            e = next((h for h in hist if abs(h[0] - t) < 0.5 * step), None)
-            if e is None:
+            for h in hist:                      # the first (oldest) step within half a step
+                if abs(h[0] - t) < half:
+                    out.append(h)
+                    break
+            else:
                 return None
-            out.append(e)
         return out
 
     def imu(self, t_ns: int, accel_imu: np.ndarray, rate_imu: np.ndarray) -> bool:
         """Apply one IMU sample (IMU frame) covering the ``imu_steps`` steps that end at ``t_ns``.
 
         Returns False (nothing applied) when a step of its interval is missing.
+
+        Written for speed with the arithmetic of the plain numpy form kept operation for
+        operation (same bits): matrix products stay numpy calls on operands of the same shape
+        and layout; element-wise 3-vector work is done on Python floats (the same IEEE double
+        operations in the same order); means of ``k`` rows are the sequential sum / ``k`` that
+        ``ndarray.mean(0)`` computes.
         """
         w = self.R_imu @ np.asarray(rate_imu, dtype=float)
         a = self.R_imu @ np.asarray(accel_imu, dtype=float)
@@ -157,47 +191,68 @@ class ThrusterFilter:
         cur = self._steps(t_ns, nn)
         if cur is None:
             return False
-        n, ns = self.n, self.ns
-        I, Iinv, r = self.I, self.I_inv, self.r
-        gyro_term = cross(w, I @ w)
-        ys, Hs, Rs = [], [], []
-        # accelerometer
-        arm = np.array([e[1] for e in cur])
+        I = self.I
+        w0, w1, w2 = w.tolist()
+        i0, i1, i2 = (I @ w).tolist()
+        g0, g1, g2 = w1 * i2 - w2 * i1, w2 * i0 - w0 * i2, w0 * i1 - w1 * i0     # cross(w, I w)
+        r0, r1, r2 = self._rl
+        H, y = self._H, self._y
+        # accelerometer: known = f_arm / m + (I^-1 (tau_arm - w x I w)) x r + w x (w x r)
+        rows = [e[1].tolist() for e in cur]
+        X = (np.array([[u[3] - g0, u[4] - g1, u[5] - g2] for u in rows]) @ self._Iinv_T).tolist()
+        c0, c1, c2 = w1 * r2 - w2 * r1, w2 * r0 - w0 * r2, w0 * r1 - w1 * r0           # w x r
+        d0, d1, d2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0           # w x (w x r)
+        m = self.m
+        s0 = s1 = s2 = None
+        for u, (x0, x1, x2) in zip(rows, X):
+            k0 = u[0] / m + (x1 * r2 - x2 * r1) + d0
+            k1 = u[1] / m + (x2 * r0 - x0 * r2) + d1
+            k2 = u[2] / m + (x0 * r1 - x1 * r0) + d2
+            if s0 is None:
+                s0, s1, s2 = k0, k1, k2
+            else:
+                s0, s1, s2 = s0 + k0, s1 + k1, s2 + k2
+        a0, a1, a2 = a.tolist()
+        y[:3] = (a0 - s0 / nn, a1 - s1 / nn, a2 - s2 / nn)
         V = np.array([e[2] for e in cur])
-        known = arm[:, :3] / self.m + cross((arm[:, 3:] - gyro_term) @ Iinv.T, r) + cross(w, cross(w, r))
-        ys.append(a - known.mean(0))
-        Ha = np.zeros((3, ns))
-        vbar = V.mean(0)
-        Ha[:, :6 * n] = np.kron(vbar[None, :], self.Ha)
-        Ha[:, 6 * n:] = self.Ha
-        Hs.append(Ha)
-        Rs.append(np.full(3, self.r_acc))
-        # gyro difference
-        step_ns = self.dt * 1e9
+        np.multiply((np.add.reduce(V, 0) / nn)[None, :, None], self._Ha_b, out=self._Ha_valves)
+        nrows = 3
+        # gyro difference: I (w_k - w_{k-1}) / (n dt) - sum_u c_u (tau_arm(u) - w x I w)
+        step_ns = self._step_ns
         if prev is not None and abs((t_ns - prev[0]) - nn * step_ns) < 0.5 * step_ns:
             span = self._steps(t_ns - step_ns, 2 * nn - 1)
             if span is not None:
-                armu = np.array([e[1] for e in span])
+                p0, p1, p2 = prev[1].tolist()
+                e0, e1, e2 = (I @ np.array([w0 - p0, w1 - p1, w2 - p2])).tolist()
+                armu = np.array([[u[3] - g0, u[4] - g1, u[5] - g2] for u in (e[1].tolist() for e in span)])
+                b0, b1, b2 = (self.c @ armu).tolist()
+                T = nn * self.dt
+                y[3:] = (e0 / T - b0, e1 / T - b1, e2 / T - b2)
                 Vu = np.array([e[2] for e in span])
-                ys.append(I @ (w - prev[1]) / (nn * self.dt) - self.c @ (armu[:, 3:] - gyro_term))
-                Hw = np.zeros((3, ns))
-                vt = self.c @ Vu
-                Hw[:, :6 * n] = np.kron(vt[None, :], np.hstack([np.zeros((3, 3)), np.eye(3)]))
-                Hw[:, 6 * n + 3:] = np.eye(3)
-                Hs.append(Hw)
-                Rs.append(self.r_mom)
+                np.multiply((self.c @ Vu)[None, :, None], self._E_b, out=self._Hw_valves)
+                nrows = 6
         # random walk since the last update, then the update
+        P = self.P
         if self._last_update_ns is not None:
             dt = max(0.0, (t_ns - self._last_update_ns) * 1e-9)
-            self.P[np.diag_indices(ns)] += self.Q_per_s * dt
+            if P.flags.c_contiguous:
+                P.reshape(-1)[::self.ns + 1] += self.Q_per_s * dt      # the diagonal, in place
+            else:
+                P[np.diag_indices(self.ns)] += self.Q_per_s * dt
         self._last_update_ns = t_ns
-        H = np.vstack(Hs)
-        y = np.concatenate(ys)
-        PHt = self.P @ H.T
-        S = H @ PHt + np.diag(np.concatenate(Rs))
-        K = np.linalg.solve(S, PHt.T).T
+        if nrows == 6:
+            R = self._R6
+        else:
+            H, y, R = H[:3], y[:3].copy(), self._R3
+        PHt = P @ H.T
+        S = H @ PHt + R
+        K = _solve(S, PHt.T).T
         self.x += K @ (y - H @ self.x)
-        self.P -= K @ PHt.T
-        self.P = 0.5 * (self.P + self.P.T)
+        P -= K @ PHt.T
+        # P = 0.5 * (P + P.T), into the other buffer (P and _sym take turns; nothing else holds P)
+        sym = self._sym
+        np.add(P, P.T, out=sym)
+        np.multiply(0.5, sym, out=sym)
+        self.P, self._sym = sym, P
         self.updates += 1
         return True

@@ -1,0 +1,139 @@
+"""The recorder's and the replay reader's fast paths against the plain forms: the prebuilt JSON
+encoder, the direct MCAP message append, the record walker of ``iter_file_order`` and the
+exact-format parser of CAN frame records."""
+from __future__ import annotations
+
+import json
+import math
+import random
+
+import can
+import pytest
+
+from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, WrenchSample
+from gateway import mcaplog
+from gateway import recorder as rc
+from gateway import replay as rp
+from gateway.efforts import JointEfforts, ThrusterEffort
+
+
+def _samples(rnd: random.Random, n: int):
+    odd = [math.nan, math.inf, -math.inf, -0.0, 1e-310, 1.7976931348623157e308, 0.1, 1 / 3]
+    f = lambda: rnd.choice(odd) if rnd.random() < 0.1 else rnd.uniform(-1e3, 1e3)  # noqa: E731
+    names = ["arm0", "arm0/j1", "bras-\u00e9", "quote\"d", "back\\slash", "tab\tx", "\u2603"]
+    for k in range(n):
+        yield rnd.choice([
+            WrenchSample(rnd.choice(names), k, k & 0xFF, (f(), f(), f()), (f(), f(), f()), rnd.random() < .5, 3),
+            JointSample(rnd.choice(names), k, 7, f(), f()),
+            ImuSample(k, 1, (f(), f(), f(), f()), (f(), f(), f()), (f(), f(), f()), True, 0x300),
+            JointEfforts(rnd.choice(names), k, ("a/j1", "a/j2"), (f(), f()), (f(), f()), (), 0, (f(), f()),
+                         False, ("missing:a", "stale:imu")),
+            ThrusterEffort(k, (f(), f(), f()), (f(), f(), f()), (0.0,) * 3, (0.0,) * 3, 0, 5, True),
+            DeviceHealth("imu", "spacecraft", k, 1, 2, 3, (("dlc", 1), ("late", 2)), 4, False),
+            BusHealth("arm0", k, 9, (), f(), (("ft", 5),)),
+        ])
+
+
+def test_prebuilt_json_encoder_gives_the_same_bytes():
+    for s in _samples(random.Random(1), 3000):
+        names = rc._field_names(type(s))
+        assert rc._dataclass_json(type(s))(s) == rc._encode({n: getattr(s, n) for n in names})
+
+
+def _content(path):
+    return [(t, s, m.log_time, bytes(m.data)) for t, s, m in rp.iter_file_order(path)]
+
+
+def test_direct_message_append_writes_what_the_library_writes(tmp_path, monkeypatch):
+    rnd = random.Random(2)
+    items = list(_samples(rnd, 4000))
+    frames = [can.Message(arbitration_id=0x200 + k % 3, data=bytes(rnd.getrandbits(8) for _ in range(8)),
+                          timestamp=1.0 + k * 1e-3) for k in range(3000)]
+
+    def write(path):
+        with rc.Recorder(path, chunk_size=16 * 1024, queue_size=1 << 20) as rec:
+            for k, s in enumerate(items):
+                rec.record(f"/t/{type(s).__name__}", s, log_time_ns=10_000 + (k * 7919) % 5000)
+                if k < len(frames):
+                    rec.record_can("arm0", frames[k])
+        return rec.stats
+
+    fast = write(tmp_path / "fast.mcap")
+    monkeypatch.setattr(rc, "_fast_add_message", lambda writer: None)
+    slow = write(tmp_path / "lib.mcap")
+    assert (fast.written, fast.chunks, fast.dropped) == (slow.written, slow.chunks, 0)
+    assert _content(tmp_path / "fast.mcap") == _content(tmp_path / "lib.mcap")
+    a, b = (mcaplog.inspect(tmp_path / n) for n in ("fast.mcap", "lib.mcap"))
+    assert a.complete and b.complete
+    assert [(c.topic, c.count, c.first_ns, c.last_ns) for c in a.channels] == \
+           [(c.topic, c.count, c.first_ns, c.last_ns) for c in b.channels]
+    from mcap.reader import make_reader
+
+    summaries = []
+    for name in ("fast.mcap", "lib.mcap"):
+        with open(tmp_path / name, "rb") as f:
+            reader = make_reader(f)
+            s = reader.get_summary()
+            summaries.append((s.statistics.message_count, s.statistics.message_start_time,
+                              s.statistics.message_end_time, dict(s.statistics.channel_message_counts),
+                              [(c.message_start_time, c.message_end_time, c.uncompressed_size)
+                               for c in s.chunk_indexes],
+                              [(m.channel_id, m.log_time, m.data)
+                               for _, _, m in reader.iter_messages(log_time_order=True)]))
+    assert summaries[0] == summaries[1]
+
+
+def test_record_walker_reads_what_a_full_scan_reads(tmp_path):
+    path = tmp_path / "s.mcap"
+    rnd = random.Random(3)
+    with rc.Recorder(path, chunk_size=8 * 1024) as rec:
+        for k, s in enumerate(_samples(rnd, 3000)):
+            rec.record(f"/t/{k % 5}", {"t_ns": k, "v": k * 0.5}) if k % 11 == 0 else \
+                rec.record(f"/s/{type(s).__name__}", s, log_time_ns=5_000 + k)
+    ref = []
+    mcaplog.scan(path, lambda ch, m: ref.append((ch.topic, m.log_time, bytes(m.data))))
+    assert [(t, lt, d) for t, _, lt, d in _content(path)] == ref
+    window = [(t, lt, d) for t, _, m in rp.iter_file_order(path, lambda t, s: t.startswith("/s/"), 6000, 7000)
+              for lt, d in [(m.log_time, bytes(m.data))]]
+    assert window == [x for x in ref if x[0].startswith("/s/") and 6000 <= x[1] < 7000]
+
+
+@pytest.mark.parametrize("channel", [None, 0, 7, -1, "can0", "vcan 1", 'q"uote', "\u00e9", "a\\b", "tab\tx"])
+def test_can_record_parser_equals_json(tmp_path, channel):
+    rnd = random.Random(str(channel))
+    msgs = []
+    for k in range(300):
+        msgs.append(can.Message(
+            timestamp=rnd.choice([0.0, 1767000000.123456789, rnd.random() * 1e9]) + k,
+            arbitration_id=rnd.randrange(1 << 29), is_extended_id=rnd.random() < .5,
+            is_remote_frame=rnd.random() < .2, is_error_frame=rnd.random() < .2, is_fd=rnd.random() < .3,
+            bitrate_switch=rnd.random() < .3, error_state_indicator=rnd.random() < .3, is_rx=rnd.random() < .8,
+            dlc=rnd.randrange(16), data=bytes(rnd.getrandbits(8) for _ in range(rnd.randrange(65))),
+            channel=channel, check=False))
+    path = tmp_path / "c.mcap"
+    with rc.Recorder(path) as rec:
+        for m in msgs:
+            rec.record_can("bus0", m)
+    got = list(rp.iter_can_frames(path))
+    ref = []
+    for topic, _, m in rp.iter_file_order(path):
+        ref.append((topic[len(rc.CAN_TOPIC_PREFIX):], m.log_time, rc.can_frame_from_record(json.loads(m.data))))
+    assert len(got) == len(ref) == len(msgs)
+    for (b1, t1, m1), (b2, t2, m2) in zip(got, ref):
+        assert (b1, t1) == (b2, t2)
+        for attr in ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "is_fd",
+                     "bitrate_switch", "error_state_indicator", "is_rx", "dlc", "data", "channel"):
+            assert getattr(m1, attr) == getattr(m2, attr) and type(getattr(m1, attr)) is type(getattr(m2, attr)), attr
+
+
+def test_can_record_parser_refuses_what_json_refuses():
+    bad = [b'{"t_ns":007,"arbitration_id":1,"is_extended_id":false,"is_remote_frame":false,'
+           b'"is_error_frame":false,"is_fd":false,"bitrate_switch":false,"error_state_indicator":false,'
+           b'"is_rx":true,"dlc":0,"data":"","channel":null}',
+           b'{"t_ns":1,"arbitration_id":1,"is_extended_id":false,"is_remote_frame":false,'
+           b'"is_error_frame":false,"is_fd":false,"bitrate_switch":false,"error_state_indicator":false,'
+           b'"is_rx":true,"dlc":0,"data":"","channel":"\x01"}']
+    for raw in bad:
+        assert rp._CAN_RECORD.fullmatch(raw) is None
+        with pytest.raises(ValueError):
+            json.loads(raw)
