@@ -180,7 +180,7 @@ class TorqueCommandDriver(Driver):
     def _make(self, slots, dev: DeviceCounters):
         def handle(msg: can.Message, data: bytes) -> None:
             cmds = frames.decode_torque_commands(data, slots, _t_ns(msg))
-            if dev.sequence(data[0]):
+            if dev.sequence(data[0], _t_ns(msg)):
                 dev.accept(_t_ns(msg), any(c.saturated for c in cmds), 0)
                 for c in cmds:
                     self.sink(c)

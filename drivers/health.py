@@ -33,6 +33,7 @@ from drivers.samples import BusHealth, DeviceHealth
 REASONS = ("error_frame", "extended_id", "unknown_id", "dlc", "remote_frame", "fd_on_classic",
            "duplicate", "late", "incomplete")
 DEFAULT_STALE_PERIODS = 10
+RESYNC_PERIODS = 100   # a device silent for longer has resumed: trust the time, not the counter alone
 
 
 class DeviceCounters:
@@ -54,11 +55,23 @@ class DeviceCounters:
     def reject(self, reason: str, n: int = 1) -> None:
         self.rejected[reason] += n
 
-    def sequence(self, counter: int) -> bool:
-        """Check a completed sample's counter; False (and counted) if it must be dropped."""
+    def sequence(self, counter: int, t_ns: int | None = None) -> bool:
+        """Check a completed sample's counter; False (and counted) if it must be dropped.
+
+        The 8-bit counter alone tells a gap, a duplicate and a late (reordered) sample apart only
+        within half its range. After a silence of more than :data:`RESYNC_PERIODS` periods (by
+        the sample time ``t_ns``, when given) the device has resumed: the sample is kept and the
+        samples lost are the count congruent to the counter step that best fits the time away.
+        """
         last = self.last_counter
         if last is not None:
             d = (counter - last) & 0xFF
+            if t_ns is not None and self.samples and t_ns - self.last_t_ns > RESYNC_PERIODS * self.period_ns:
+                steps = (t_ns - self.last_t_ns) / self.period_ns
+                n = d + 256 * max(0, round((steps - d) / 256))
+                self.lost += max(n, 1) - 1
+                self.last_counter = counter
+                return True
             if d == 0:
                 self.rejected["duplicate"] += 1
                 return False
@@ -71,7 +84,7 @@ class DeviceCounters:
 
     def admit(self, counter: int, t_ns: int, saturated: bool, status: int) -> bool:
         """:meth:`sequence` then, if the sample is kept, :meth:`accept`: one call per sample."""
-        if not self.sequence(counter):
+        if not self.sequence(counter, t_ns):
             return False
         self.samples += 1
         self.last_t_ns = t_ns

@@ -166,6 +166,7 @@ class GatewayService:
         self._publishers: dict[str, object] = {}
         self._lock = threading.Lock()            # the pipeline is used by the worker and by health ticks
         self._closed = False
+        self._publishing = True          # until close() has flushed the estimator's last epochs
         self.published = 0
         self.publish_errors = 0
         self.pipeline_errors = 0
@@ -226,6 +227,7 @@ class GatewayService:
                     self._shutdown(bus)
             self._owned.clear()
         with self._lock:
+            self._publishing = False     # the worker's final flush above was still published
             pubs, self._publishers = list(self._publishers.values()), {}
         for p in pubs:
             try:
@@ -410,7 +412,7 @@ class GatewayService:
             self.publish(key, obj)
 
     def publish(self, key: str, obj) -> None:
-        if self._closed:
+        if not self._publishing:
             return
         pub = self._publishers.get(key)
         if pub is None:

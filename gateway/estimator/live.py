@@ -280,7 +280,13 @@ class LiveEstimator:
         arm_w = -(ft.reshape(-1) @ self._AsT)                      # arm_reaction(model, ft)
         kf = self.kf
         thr = kf.wrench(valves)
-        kf.push_epoch(t, arm_w, valves)
+        # the filter learns only from whole, trusted steps: a step without every arm's F/T
+        # sample or without the valve command (or with a saturated or faulty F/T sample) is left
+        # out, and the IMU samples whose interval it falls in are not applied (kf.imu)
+        # (an arm flag without "/" is about its F/T sensor: missing, saturated or fault)
+        if e.valves is not None and (arm_flags is None or not any(
+                "/" not in f for flags in arm_flags.values() for f in flags)):
+            kf.push_epoch(t, arm_w, valves)
         # base motion (element-wise work on Python floats: the same double operations in the
         # same order as the numpy form (thr + arm) / m, (thr + arm) - w x (I w))
         I, ms = self._I, self._mass_s

@@ -395,6 +395,14 @@ def check_flags(run: Lockstep, efforts: list) -> dict:
     return dict(out)
 
 
+def assert_good_within_tolerance(res) -> None:
+    """Every effort published as good, even right after a fault, is within tolerance of truth
+    (the thruster filter must not have learned from the faulty steps)."""
+    bad, worst = tolerance_violations(res.run, res.efforts)
+    print("\nworst error of a good effort:", worst, f"({len(bad)} beyond tolerance)")
+    assert not bad, f"{len(bad)} good efforts beyond tolerance, first: {bad[:5]}"
+
+
 def tolerance_violations(run: Lockstep, efforts: list) -> tuple[list[str], dict]:
     """Every effort published as good against the truth: (violations of TOL, worst errors)."""
     A = run.trace.arrays
@@ -538,17 +546,8 @@ def test_random_faults_health_counts_what_was_injected(random_faults):
         assert not others, f"stale at {t / 1e9} s without a fault: {others}"
 
 
-KF_BUG = ("gateway/estimator/live.py LiveEstimator._compute feeds the thruster filter "
-          "(self.kf.push_epoch) with epochs that miss an F/T sample (zeros) or the valve command (all "
-          "closed); after a 100 ms silent F/T sensor, efforts published as good are off by up to "
-          "~130 N / ~200 N m (docs/faults.md)")
-
-
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=KF_BUG)
 def test_random_faults_good_estimates_are_within_tolerance(random_faults):
-    bad, worst = tolerance_violations(random_faults.run, random_faults.efforts)
-    print("\nworst error of a good effort:", worst, f"({len(bad)} beyond tolerance)")
-    assert not bad, f"{len(bad)} good efforts beyond tolerance, first: {bad[:5]}"
+    assert_good_within_tolerance(random_faults)
 
 
 # --- CI: bus down and up --------------------------------------------------------------------------------
@@ -595,22 +594,12 @@ def test_bus_outage_health_counts_what_was_lost(bus_outages):
     check_health(bus_outages)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=KF_BUG)
 def test_bus_outage_good_estimates_are_within_tolerance(bus_outages):
-    bad, worst = tolerance_violations(bus_outages.run, bus_outages.efforts)
-    print("\nworst error of a good effort:", worst, f"({len(bad)} beyond tolerance)")
-    assert not bad, f"{len(bad)} good efforts beyond tolerance, first: {bad[:5]}"
+    assert_good_within_tolerance(bus_outages)
 
 
 # --- an outage longer than half the 8-bit counter range ----------------------------------------------
 
-COUNTER_BUG = ("drivers/health.py DeviceCounters.sequence judges a gap by the 8-bit counter alone: after a "
-               "1 kHz device was away for 128..255 ms its next samples read as 'late' and are rejected until "
-               "the counter wraps (up to 127 ms of valid data discarded) and 'lost' misses the gap (mod 256); "
-               "the sample time could tell (docs/faults.md)")
-
-
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=COUNTER_BUG)
 def test_a_200_ms_outage_is_counted_and_the_device_resumes_at_once():
     """Drivers + estimator as the gateway runs them (:class:`gateway.pipeline.Pipeline`), fed in
     lockstep: an F/T sensor and a joint drive silent for 200 ms (a bus cut longer than 127 ms)."""

@@ -18,6 +18,7 @@ import zenoh
 import robot_description
 from drivers import frames, wire
 from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, WrenchSample
+from gateway.efforts import JointEfforts
 from gateway import codec, keys
 from gateway.bridge import GatewayService
 from gateway.zenoh_config import make_config
@@ -143,3 +144,34 @@ def test_gateway_command_publishes_health_over_loopback():
         proc.terminate()
         out, err = proc.communicate(timeout=30)
     assert "bsc gateway: robot paper_robot" in out, err
+
+
+def test_epochs_flushed_at_close_are_still_published(sessions):
+    """Epochs still waiting for inputs when the service closes are computed by the final flush
+    (flagged, never good) and must reach subscribers, not vanish."""
+    pub_s, sub_s = sessions
+    robot = robot_description.load("paper_robot")
+    wm = wire.WireMap.from_robot(robot)
+    prefix = f"bsc-flush-{uuid.uuid4().hex}"
+    col = Collector(lambda got: sum(isinstance(o, JointEfforts) for _, o in got) >= len(robot.arms))
+    sub = sub_s.declare_subscriber(keys.efforts("paper_robot"), col)
+    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), receive_own_messages=False,
+                        ignore_config=True) for n in wm.buses}
+    tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
+                 ignore_config=True)
+    try:
+        gw = GatewayService(robot, buses, pub_s).start()
+        for c in range(3):               # arm0's F/T only: its epoch never completes
+            for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
+                tx.send(m)
+        assert gw.drain(10.0)
+        assert not col.got                # nothing computed yet: the epochs wait for their inputs
+        gw.close()
+        assert col.done.wait(10.0), col.got
+    finally:
+        tx.shutdown()
+        for b in buses.values():
+            b.shutdown()
+        sub.undeclare()
+    efforts = [o for _, o in col.got if isinstance(o, JointEfforts)]
+    assert all(not e.good and any(f.startswith("missing:") for f in e.flags) for e in efforts)

@@ -1,0 +1,40 @@
+"""The 8-bit sample-counter check of drivers.health.DeviceCounters, including a device that comes
+back after a silence longer than half the counter range."""
+from __future__ import annotations
+
+import pytest
+
+from drivers.health import RESYNC_PERIODS, DeviceCounters
+
+MS = 1_000_000
+
+
+def feed(dev: DeviceCounters, ks) -> list[bool]:
+    """Samples number k of a 1 kHz device: counter k mod 256, sample time k ms."""
+    return [dev.admit(k & 0xFF, k * MS, False, 0) for k in ks]
+
+
+def test_gaps_duplicates_and_late_samples_by_counter():
+    dev = DeviceCounters("arm0", "arm0", MS)
+    assert feed(dev, [0, 1, 2, 5, 6]) == [True] * 5
+    assert dev.lost == 2
+    assert dev.admit(6, 6 * MS, False, 0) is False and dev.rejected["duplicate"] == 1
+    assert dev.admit(4, 7 * MS, False, 0) is False and dev.rejected["late"] == 1     # reordered
+
+
+@pytest.mark.parametrize("away_ms", [90, 130, 200, 256, 300, 700, 5000])
+def test_a_device_back_from_a_long_silence_is_kept_and_the_gap_counted(away_ms):
+    dev = DeviceCounters("arm0", "arm0", MS)
+    feed(dev, range(10))
+    back = 9 + away_ms + 1                      # samples 10 .. 9 + away_ms were never sent
+    assert feed(dev, range(back, back + 20)) == [True] * 20
+    assert dev.lost == away_ms and not dev.rejected
+    assert dev.samples == 30
+
+
+def test_resync_needs_a_real_silence():
+    # within RESYNC_PERIODS a counter going backwards is a late sample, whatever the clock says
+    dev = DeviceCounters("arm0", "arm0", MS)
+    feed(dev, range(10))
+    assert dev.admit(3, (9 + RESYNC_PERIODS - 1) * MS, False, 0) is False
+    assert dev.rejected["late"] == 1 and dev.lost == 0
