@@ -95,6 +95,12 @@ class Controller:
         self._nv = robot.model.nv
         self._J = np.zeros((len(robot.arms), 3, self._nv))    # end-effector position Jacobians
         self._x = np.empty((len(robot.arms), 3))
+        self._Jf, self._xf = self._J.reshape(-1, self._nv), self._x.reshape(-1)   # flat views of both
+        self._Jj = self._Jf[:, 6:]                               # columns of the joints
+        self._ee_frames = [a.ee_frame for a in robot.arms]
+        p3 = 3 * len(robot.arms)
+        self._kp, self._kd = np.full(p3, float(self.kp)), np.full(p3, float(self.kd))
+        self._damp = np.full(robot.n_joints, float(self.damp))
 
     def start(self, q: np.ndarray) -> None:
         """Latch the initial end-effector positions and the base pose to hold."""
@@ -124,26 +130,34 @@ class Controller:
         All arms at once: each end effector's position Jacobian has zero columns for the other
         arms' joints, so ``J_all^T force_all`` over the stacked arms is each arm's ``J^T force``.
         """
+        tau, x = self.torques_flat(np.reshape(xd, -1), np.reshape(xdd, -1), q, v)
+        return tau, x.reshape(-1, 3)
+
+    def torques_flat(self, xd: np.ndarray, xdd: np.ndarray, q: np.ndarray,
+                     v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`torques` with the references and the returned positions flat, (3 p,)."""
         model, data, J, x = self.model, self.data, self._J, self._x
         pin.computeJointJacobians(model, data, q)      # also runs forward kinematics
-        for k, arm in enumerate(self.robot.arms):
-            # getFrameJacobian also updates data.oMf of that frame
-            J[k] = pin.getFrameJacobian(model, data, arm.ee_frame, pin.LOCAL_WORLD_ALIGNED)[:3]
-            x[k] = data.oMf[arm.ee_frame].translation
-        Jf = J.reshape(-1, self._nv)
-        xdot = (Jf @ v).reshape(x.shape)                 # full velocity, base motion included
-        force = self.kp * (xd - x) + self.kd * (xdd - xdot)
-        tau = force.reshape(-1) @ Jf[:, 6:] - self.damp * v[6:]
-        return np.minimum(np.maximum(tau, self._neg_limit), self.limit), x.copy()
+        frame_jacobian, placement, lwa = pin.getFrameJacobian, pin.updateFramePlacement, pin.LOCAL_WORLD_ALIGNED
+        for k, frame in enumerate(self._ee_frames):
+            J[k] = frame_jacobian(model, data, frame, lwa)[:3]
+            x[k] = placement(model, data, frame).translation   # oMf as getFrameJacobian computed it
+        xf = self._xf
+        # gains as arrays and ndarray.dot: the same numbers as scalars and @, fewer dispatch costs
+        force = self._kp * (xd - xf) + self._kd * (xdd - self._Jf.dot(v))   # full velocity, base motion included
+        tau = force.dot(self._Jj) - self._damp * v[6:]
+        return np.minimum(np.maximum(tau, self._neg_limit), self.limit), xf.copy()
 
-    def base_wrench(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Demanded thruster wrench (body frame, about C) holding the initial base pose."""
-        M = pin.XYZQUATToSE3(q[:7])
+    def base_wrench(self, q: np.ndarray, v: np.ndarray, M: pin.SE3 | None = None) -> np.ndarray:
+        """Demanded thruster wrench (body frame, about C) holding the initial base pose
+        (``M``: the base pose ``q[:7]`` as an SE3, if already at hand)."""
+        if M is None:
+            M = pin.XYZQUATToSE3(q[:7])
         R = M.rotation
         kp_p, kp_r = self.cfg.base_kp
         kd_p, kd_r = self.cfg.base_kd
-        v_world = R @ v[:3]
+        v_world = R.dot(v[:3])
         f_world = kp_p * (self.base_p0 - M.translation) - kd_p * v_world
-        e_R = pin.log3(self.base_R0.T @ R)
+        e_R = pin.log3(self.base_R0.T.dot(R))
         m_body = -kp_r * e_R - kd_r * v[3:6]
-        return np.concatenate([R.T @ f_world, m_body])
+        return np.concatenate([R.T.dot(f_world), m_body])

@@ -13,6 +13,9 @@ One call of :meth:`Dynamics.step` advances the state by ``dt`` under inputs held
   whose required torque exceeds its breakaway level slips instead, with kinetic friction
   opposing its (would-be) motion. Friction is internal, so it never changes the total
   momentum; the friction torque is held over the step and is part of the joint's actual torque.
+  The candidate test needs the diagonal of the inverse mass matrix; a constant upper bound of
+  it (:func:`minv_diagonal_bound`) rules most steps out without computing it, with the same
+  result.
 """
 from __future__ import annotations
 
@@ -48,20 +51,44 @@ class Dynamics:
     def __init__(self, model: pin.Model, friction: Friction, dt: float):
         self.model, self.data = model, model.createData()
         self.data_start = model.createData()
-        self.friction = friction
         self.dt = dt
+        self._reach = 1.5 * dt          # a joint this close (in time) to stopping may stick
+        self._minv_bound = minv_diagonal_bound(model)
+        self.friction = friction
         self.nj = model.nv - 6
         self.q = pin.neutral(model)
         self.v = np.zeros(model.nv)
         self.stuck = np.zeros(self.nj, dtype=bool)
         self._any_stuck = False
         self.tau_friction = np.zeros(self.nj)
-        # step sizes as arrays: array * array is cheaper than scalar * array on tiny arrays
+        # step sizes as arrays: array * array is cheaper than scalar * array on tiny arrays, as
+        # ndarray.dot is than @ (the same BLAS call, without matmul's dispatch)
         self._h2, self._h = np.full(model.nv, 0.5 * dt), np.full(model.nv, dt)
         # RK4 weights (dt/6) [1 2 2 1] on the stacked stage rates [kq1..kq4, kv1..kv4]
         c1 = dt / 6.0
         self._weights = np.zeros((2, 8))
         self._weights[0, :4] = self._weights[1, 4:] = (c1, 2.0 * c1, 2.0 * c1, c1)
+
+    @property
+    def friction(self) -> Friction:
+        """The friction levels, as read-only copies: assign a new :class:`Friction` to change them."""
+        return self._friction
+
+    @friction.setter
+    def friction(self, fr: Friction) -> None:
+        levels = []
+        for x in (fr.coulomb_nm, fr.static_nm, fr.viscous_nms):
+            x = np.array(x, dtype=float)
+            x.setflags(write=False)
+            levels.append(x)
+        self._friction = Friction(*levels)
+        # the same levels as Python floats, for the per-step friction law
+        self._levels = tuple(x.tolist() for x in levels)
+        self._may_stick = any(self._levels[1])
+        # joint speeds above which a joint cannot be a candidate to stick whatever the
+        # configuration: breakaway x bound of (M^-1)_ii x reach (x 1 + 1e-6, far above rounding)
+        self._sure_slip = [0.0 if s == 0.0 else s * u * (1.0 + 1e-6) * self._reach
+                           for s, u in zip(self._levels[1], self._minv_bound)]
 
     # -- the step ---------------------------------------------------------------------------
     def step(self, base_wrench: np.ndarray, tau_motor: np.ndarray) -> np.ndarray:
@@ -74,7 +101,7 @@ class Dynamics:
         aba, integrate, q_rate = pin.aba, pin.integrate, _q_rate
         h2, h = self._h2, self._h
         tau = np.concatenate((base_wrench, tau_motor))
-        tau[6:] += self._friction(tau)
+        tau[6:] += self._friction_torques(tau)
 
         a1 = aba(model, self.data_start, q0, v0, tau)
         th = h2 * v0
@@ -90,51 +117,61 @@ class Dynamics:
         k4q = q_rate(th, v4)
         k4v = aba(model, data, integrate(model, q0, th), v4, tau)
         # (dt/6) (k1 + 2 k2 + 2 k3 + k4) for theta and v at once
-        theta, dv = self._weights @ np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v))
-        self.q = integrate(model, q0, theta)
-        self.v = v0 + dv
+        rates = self._weights.dot(np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v)))
+        self.q = integrate(model, q0, rates[0])        # (indexing: unpacking a 2-row array costs more)
+        self.v = v0 + rates[1]
         return a1
 
     # -- friction ---------------------------------------------------------------------------
-    def _friction(self, tau_applied: np.ndarray) -> np.ndarray:
-        """Friction torques held over the next step, given all applied generalized forces."""
-        fr, dt = self.friction, self.dt
-        vj = self.v[6:]
-        # per-joint scalars in Python floats: numpy calls on 2-9 element arrays cost more
-        vl = vj.tolist()
-        sgn = [(v > 0.0) - (v < 0.0) for v in vl]        # np.sign
-        static = fr.static_nm.tolist()
-        tau_f = np.array([-c * s - d * v for c, s, d, v in zip(fr.coulomb_nm.tolist(), sgn,
-                                                                fr.viscous_nms.tolist(), vl)])
-        if not any(static):
-            self.tau_friction = tau_f
-            if self._any_stuck:
-                self.stuck[:] = False
-                self._any_stuck = False
-            return tau_f
-        model, data = self.model, self.data
-        Minv = pin.computeMinverse(model, data, self.q)    # full symmetric matrix in Pinocchio 4
-        # candidates: friction at breakaway can stop the joint within this step
-        reach = 1.5 * dt
-        S = [i for i, (v, s, d) in enumerate(zip(vl, static, Minv.diagonal()[6:].tolist()))
-             if abs(v) <= s * d * reach and s > 0]
-        if not S:
-            self.tau_friction = tau_f
-            if self._any_stuck:
-                self.stuck[:] = False
-                self._any_stuck = False
-            return tau_f
-        nle = pin.nonLinearEffects(model, data, self.q, self.v)
+    def _friction_torques(self, tau_applied: np.ndarray) -> np.ndarray:
+        """Friction torques held over the next step, given all applied generalized forces.
+
+        Sets ``tau_friction`` and ``stuck``. ``stuck`` is replaced, never written in place, when
+        the set of stuck joints changes (the simulation keeps references to it as truth rows).
+        Per-joint scalars in Python floats: numpy calls on 2-9 element arrays cost more.
+        """
+        coulomb, static, viscous = self._levels
+        vl = self.v.tolist()[6:]
+        # kinetic friction opposing the motion: -coulomb sign(v) - viscous v
+        tau_f = [-c * ((v > 0.0) - (v < 0.0)) - d * v for c, d, v in zip(coulomb, viscous, vl)]
+        S = near = None
+        if self._may_stick:
+            for v, w in zip(vl, self._sure_slip):    # (a loop: any() over a generator costs 2x)
+                if -w <= v <= w:
+                    near = True
+                    break
+        if near:
+            Minv = pin.computeMinverse(self.model, self.data, self.q)   # full symmetric matrix in Pinocchio 4
+            # candidates: friction at breakaway can stop the joint within this step
+            diag, reach = Minv.diagonal().tolist(), self._reach
+            S = [i for i, v in enumerate(vl) if abs(v) <= static[i] * diag[i + 6] * reach and static[i] > 0]
+            if S:
+                tau_f, S = self._stick(Minv, tau_applied, vl, S)
+        if S:
+            stuck = np.zeros(self.nj, dtype=bool)
+            stuck[S] = True
+            self.stuck, self._any_stuck = stuck, True
+        elif self._any_stuck:
+            self.stuck, self._any_stuck = np.zeros(self.nj, dtype=bool), False
+        self.tau_friction = tau_f = np.array(tau_f)
+        return tau_f
+
+    def _stick(self, Minv: np.ndarray, tau_applied: np.ndarray, vl: list,
+               S: list[int]) -> tuple[list[float], list[int]]:
+        """Friction torques and the joints that stay stuck, for the candidate set ``S``."""
+        dt = self.dt
+        coulomb, static, viscous = self._levels
+        nle = pin.nonLinearEffects(self.model, self.data, self.q, self.v)
         Mjj = Minv[6:, 6:]
-        a_free = Minv[6:, :] @ (tau_applied - nle)     # joint accelerations without friction
+        a_free = Minv[6:, :].dot(tau_applied - nle)     # joint accelerations without friction
         Ml = Mjj.tolist()
-        coulomb, viscous = fr.coulomb_nm.tolist(), fr.viscous_nms.tolist()
+        sgn = [(v > 0.0) - (v < 0.0) for v in vl]        # np.sign
         slip_dir = list(sgn)
         while S:                                  # removes one joint per pass
             tau_o = [-c * s - d * v for c, s, d, v in zip(coulomb, slip_dir, viscous, vl)]
             for i in S:
                 tau_o[i] = 0.0
-            a = (a_free + Mjj @ np.array(tau_o)).tolist()
+            a = (a_free + Mjj.dot(np.array(tau_o))).tolist()
             # friction on S that makes v_S(t+dt) = 0: v_S + dt (a_S + Minv_SS f_S) = 0
             f_S = [-x for x in _solve_spd(Ml, S, [vl[i] / dt + a[i] for i in S])]
             excess = [abs(f) - static[i] for f, i in zip(f_S, S)]
@@ -142,21 +179,13 @@ class Dynamics:
             if worst <= 0.0:
                 for i, f in zip(S, f_S):
                     tau_o[i] = f
-                tau_f = np.array(tau_o)
-                break
+                return tau_o, S
             # the joint with the largest excess breaks away, in the direction it is pushed
             k = excess.index(worst)
             i = S[k]
             slip_dir[i] = sgn[i] if vl[i] != 0 else -((f_S[k] > 0.0) - (f_S[k] < 0.0))
             del S[k]
-        else:
-            tau_f = np.array([-c * s - d * v for c, s, d, v in zip(coulomb, slip_dir, viscous, vl)])
-        self.stuck[:] = False
-        for i in S:
-            self.stuck[i] = True
-        self._any_stuck = bool(S)
-        self.tau_friction = tau_f
-        return tau_f
+        return [-c * s - d * v for c, s, d, v in zip(coulomb, slip_dir, viscous, vl)], S
 
     # -- derived quantities (for truth and tests) -------------------------------------------
     def momentum_world(self) -> np.ndarray:
@@ -170,6 +199,45 @@ class Dynamics:
 
     def kinetic_energy(self) -> float:
         return float(pin.computeKineticEnergy(self.model, self.data, self.q, self.v))
+
+
+def minv_diagonal_bound(model: pin.Model) -> list[float]:
+    """Upper bounds, valid in every configuration, of the diagonal of the inverse mass matrix
+    over the actuated joints (v order after the base); ``inf`` where there is none.
+
+    For a revolute joint i between bodies A (its parent) and B, with unit axis n:
+    ``(M^-1)_ii <= n^T I_A^-1 n + n^T I_B^-1 n``, ``I`` the rotational inertias about the
+    bodies' centres of mass. Proof: ``1 / (M^-1)_ii = min x^T M x over x_i = 1`` (twice the
+    least kinetic energy with the joint turning at unit rate); the energy is at least that of
+    A and B alone, which is at least that of the two as free bodies joined by the joint only:
+    ``xi^T (G_A^-1 + G_B^-1)^-1 xi`` (G the spatial inertias at the joint, xi = [0; n] the
+    relative twist), and by Cauchy-Schwarz this is at least ``1 / (xi^T G_A^-1 xi + xi^T
+    G_B^-1 xi)``, where ``xi^T G^-1 xi = n^T I^-1 n``: a free body's angular acceleration
+    under a unit couple about n. Massless bodies and other joint types get no bound.
+    """
+    axes = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
+    bound = [float("inf")] * (model.nv - 6)
+    for j in range(2, model.njoints):
+        jm = model.joints[j]
+        name = jm.shortname()
+        if jm.nv != 1 or jm.idx_v < 6:
+            continue
+        if name in axes:
+            n = np.array(axes[name])
+        elif name == "JointModelRevoluteUnaligned":
+            n = np.array(jm.extract().axis, dtype=float)
+            n /= np.linalg.norm(n)
+        else:
+            continue
+        total = 0.0
+        for I, axis in ((model.inertias[model.parents[j]].inertia, model.jointPlacements[j].rotation @ n),
+                        (model.inertias[j].inertia, n)):
+            if model.parents[j] == 0 or np.linalg.eigvalsh(I).min() <= 0.0:
+                total = float("inf")
+                break
+            total += float(axis @ np.linalg.solve(I, axis))
+        bound[jm.idx_v - 6] = total
+    return bound
 
 
 def _q_rate(th: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -10,7 +10,8 @@ How the loop is organised (for speed; the result does not depend on it):
 - each step (``_advance``) runs only what the closed loop needs: the encoders and the joint
   controller on controller steps, the base controller on base steps, the physics step, and
   records the raw truth (state, acceleration, friction, the force each arm's first joint
-  transmits, taken from the physics step's first ABA call instead of a separate RNEA);
+  transmits, taken from the physics step's first ABA call instead of a separate RNEA); the
+  controller outputs are kept as a list and written to the trace (held) by ``_sense``;
 - the thruster chain (PWPFM valves, thrust errors, actual wrench) depends only on the
   allocation and on time, so it is computed for a whole base-control period at once;
 - the sensor models and the derived truth (F/T wrenches at the sensors, encoder samples, IMU
@@ -126,7 +127,11 @@ class Simulation:
         self.demand = np.zeros(6)
         self.u_cmd = np.zeros(self.layout.n)
         self.wrench_cmd = np.zeros(6)
-        self.ee = self.ee_des = np.zeros((len(r.arms), 3))   # end effector and its reference, inertial
+        # controller outputs (tau_cmd, end-effector positions (3 p,)) of the calls from _ctrl_i0 on,
+        # written to the trace (held until the next call) by _sense
+        self._ctrl_out: list[tuple[np.ndarray, np.ndarray]] = []
+        self._ctrl_i0 = 0
+        self._ee = np.zeros(3 * len(r.arms))
         self.trace = Trace.allocate(self)
         self._rows = tuple(self.trace.arrays[name] for name in ("q", "v", "a", "tau_friction", "stuck"))
         # raw truth not kept in the trace: force transmitted by each arm's first joint (its frame)
@@ -136,6 +141,18 @@ class Simulation:
         self._chunk_valves = np.zeros((self.base_every, self.layout.n), dtype=bool)
         # end-effector references at every controller step, computed at once
         self._ref = self.ctrl.desired(np.arange(0, self.n_steps, self.ctrl_every) * DT_S)
+        self._ref_flat = tuple(x.reshape(len(x), -1) for x in self._ref)
+        self._thr_degrade = any(d["kind"] in ("thruster_loss", "thruster_stuck") for d in self._degrade)
+
+    @property
+    def ee(self) -> np.ndarray:
+        """End-effector positions (p, 3), inertial, at the last controller step."""
+        return self._ee.reshape(-1, 3)
+
+    @property
+    def ee_des(self) -> np.ndarray:
+        """Their references (p, 3) at the last controller step."""
+        return self._ref[0][max(0, self.k - 1) // self.ctrl_every]
 
     # ------------------------------------------------------------------------------------------
     def _check_degrade(self) -> None:
@@ -155,15 +172,20 @@ class Simulation:
     # (in list order, so a later entry for the same item wins).
     def _apply_friction_degradations(self, t: float) -> None:
         fr = self.dyn.friction
+        coulomb, static = fr.coulomb_nm.copy(), fr.static_nm.copy()
         ratio = float(self.scenario.cfg.friction.static_ratio)
+        changed = False
         for d in self._friction_degrade:
             if t < d["onset_s"] or not self.friction_enabled:
                 continue
             j = self.robot.joint_names.index(d["joint"])
             frac0 = self._base_coulomb[j] / self.robot.effort_limit[j]
             s = min(1.0, (t - d["onset_s"]) / max(d["ramp_s"], 1e-9))
-            fr.coulomb_nm[j] = (frac0 + s * (d["to_fraction"] - frac0)) * self.robot.effort_limit[j]
-            fr.static_nm[j] = fr.coulomb_nm[j] * ratio
+            coulomb[j] = (frac0 + s * (d["to_fraction"] - frac0)) * self.robot.effort_limit[j]
+            static[j] = coulomb[j] * ratio
+            changed = True
+        if changed:
+            self.dyn.friction = Friction(coulomb, static, fr.viscous_nms)
 
     def _thruster_degradations(self, t: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Per-step (gain factor, stuck state) arrays (len(t), m), or None when there are none."""
@@ -197,45 +219,20 @@ class Simulation:
     # ------------------------------------------------------------------------------------------
     def _advance(self) -> None:
         """One step of the closed loop; records the raw truth of row k (see the module docstring)."""
-        k, dyn, A = self.k, self.dyn, self.trace.arrays
+        k, dyn = self.k, self.dyn
         if self._friction_degrade:
             self._apply_friction_degradations(k * DT_S)
         q, v = dyn.q, dyn.v
 
         if k % self.ctrl_every == 0:
             # the flight computer sees the encoders and the navigation solution of the base
-            angle, rate = self.enc.read(q[7:], v[6:], k)
-            qm = np.concatenate((q[:7], angle))
-            vm = np.concatenate((v[:6], rate))
+            qm, vm = self.enc.measured_state(q, v, k)
             i = k // self.ctrl_every
-            xd = self._ref[0][i]
-            self.tau_cmd, self.ee = self.ctrl.torques(xd, self._ref[1][i], qm, vm)
-            self.ee_des = xd
-            hold = slice(k, k + self.ctrl_every)          # held until the next controller step
-            A["tau_cmd"][hold] = self.tau_cmd
-            A["ee"][hold] = self.ee
-            A["ee_des"][hold] = xd
-        be = self.base_every
-        j = k % be
+            self.tau_cmd, self._ee = self.ctrl.torques_flat(self._ref_flat[0][i], self._ref_flat[1][i], qm, vm)
+            self._ctrl_out.append((self.tau_cmd, self._ee))
+        j = k % self.base_every
         if j == 0:
-            M = pin.XYZQUATToSE3(q[:7])
-            self.demand = self.ctrl.base_wrench(q, v)
-            allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
-            self.u_cmd = self.alloc.allocate(self.demand, allowed)
-            self.wrench_cmd = self.alloc.B @ self.u_cmd
-            # the thruster chain until the next allocation depends on nothing else
-            commanded = self.pwpfm.run(self.u_cmd / self.layout.max_n, be)
-            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
-            valves, thrust = self.thr_err.run(commanded, factor, stuck)
-            self._chunk_valves = valves
-            self._wrench_chunk = thrust @ self.thr_err.B_actual.T
-            hold = slice(k, k + be)
-            n = len(A["valves"][hold])
-            A["thr_demand"][hold] = self.demand
-            A["thr_cmd"][hold] = self.wrench_cmd
-            A["valves"][hold] = valves[:n]
-            A["thrust"][hold] = thrust[:n]
-            A["thr_act"][hold] = self._wrench_chunk[:n]
+            self._base_control(k, q, v)
 
         a = dyn.step(self._wrench_chunk[j], self.tau_cmd)
 
@@ -250,6 +247,30 @@ class Simulation:
             F[i] = f[joint].vector
         self.k = k + 1
 
+    def _base_control(self, k: int, q: np.ndarray, v: np.ndarray) -> None:
+        """Base controller, allocation and the thruster chain of the base period from step k."""
+        A, be = self.trace.arrays, self.base_every
+        M = pin.XYZQUATToSE3(q[:7])
+        self.demand = self.ctrl.base_wrench(q, v, M)
+        allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
+        self.u_cmd = self.alloc.allocate(self.demand, allowed)
+        self.wrench_cmd = self.alloc.B.dot(self.u_cmd)
+        # the thruster chain until the next allocation depends on nothing else
+        commanded = self.pwpfm.run(self.u_cmd / self.layout.max_n, be)
+        factor = stuck = None
+        if self._thr_degrade:
+            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
+        valves, thrust = self.thr_err.run(commanded, factor, stuck)
+        self._chunk_valves = valves
+        self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
+        hold = slice(k, k + be)
+        n = len(A["valves"][hold])
+        A["thr_demand"][hold] = self.demand
+        A["thr_cmd"][hold] = self.wrench_cmd
+        A["valves"][hold] = valves[:n]
+        A["thrust"][hold] = thrust[:n]
+        A["thr_act"][hold] = self._wrench_chunk[:n]
+
     def _sense(self, k1: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor models and derived truth for the recorded rows [_sensed, k1).
 
@@ -259,6 +280,22 @@ class Simulation:
         k0, A, tr = self._sensed, self.trace.arrays, self.trace
         q, v, a = A["q"][k0:k1], A["v"][k0:k1], A["a"][k0:k1]
         t = np.arange(k0, k1) * DT_S
+        # controller outputs, held from each controller step to the next
+        ce, i0, out = self.ctrl_every, self._ctrl_i0, self._ctrl_out
+        if k1 - k0 <= 2 * ce:                       # a few rows (step()): one by one
+            for r in range(k0, k1):
+                A["tau_cmd"][r], ee = out[r // ce - i0]
+                A["ee"][r] = ee.reshape(-1, 3)
+                A["ee_des"][r] = self._ref[0][r // ce]
+        else:
+            i = np.arange(k0, k1) // ce
+            tau_cmd, ee = (np.array(x) for x in zip(*out))
+            A["tau_cmd"][k0:k1] = tau_cmd[i - i0]
+            A["ee"][k0:k1] = ee[i - i0].reshape(k1 - k0, -1, 3)
+            A["ee_des"][k0:k1] = self._ref[0][i]
+        keep = k1 // ce                             # the first call still needed (rows from k1 on)
+        del out[:keep - i0]
+        self._ctrl_i0 = keep
         A["t_s"][k0:k1] = t
         np.add(A["tau_cmd"][k0:k1], A["tau_friction"][k0:k1], out=A["tau_act"][k0:k1])
         # classical acceleration of C, body frame: a_lin + w x v_lin

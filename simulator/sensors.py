@@ -170,10 +170,27 @@ class Encoders:
         self.res = 2.0 * math.pi / (1 << int(cfg.bits_per_rev))
         self.rate_sigma = scale * cfg.rate_noise_rad_s
         self.noise = _Noise(rng, n)
+        self._rate_block, self._rate_rows = -1, []
 
     def read(self, q: np.ndarray, dq: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Sample ``i``: (angles, rates) for the true joint angles and rates (n,)."""
         return quantize(q, self.res), dq + self.rate_sigma * self.noise.row(i)
+
+    def measured_state(self, q: np.ndarray, v: np.ndarray, i: int, nq_base: int = 7,
+                       nv_base: int = 6) -> tuple[np.ndarray, np.ndarray]:
+        """``q`` and ``v`` with the joint entries (after the first ``nq_base`` / ``nv_base``)
+        replaced by encoder sample ``i``: the same numbers as :meth:`read`, in Python floats
+        (cheaper than numpy for a few joints; ``round`` rounds half to even like numpy, and
+        ``or x * 0.0`` keeps numpy's sign of a zero)."""
+        res = self.res
+        ql, vl = q.tolist(), v.tolist()
+        ql[nq_base:] = [round(x / res) * res or x * 0.0 for x in ql[nq_base:]]
+        b, j = divmod(i, BLOCK)
+        if b != self._rate_block:              # sigma * noise of a block of samples, as floats
+            self._rate_rows = (self.rate_sigma * self.noise._block(b)).tolist()
+            self._rate_block = b
+        vl[nv_base:] = [d + e for d, e in zip(vl[nv_base:], self._rate_rows[j])]
+        return np.array(ql), np.array(vl)
 
     def read_block(self, q: np.ndarray, dq: np.ndarray, i0: int) -> tuple[np.ndarray, np.ndarray]:
         """Samples i0..i0+K-1 for (K, n) true angles and rates; the same values as :meth:`read`."""

@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy
 from scipy.optimize import nnls
 
 from robot_description.thrusters import LAYOUTS, ThrusterLayout, wrench_matrix
@@ -23,6 +24,12 @@ from robot_description.thrusters import LAYOUTS, ThrusterLayout, wrench_matrix
 # shared with the gateway's estimator: robot_description/thrusters.py.
 Layout = ThrusterLayout
 __all__ = ["LAYOUTS", "Layout", "wrench_matrix", "Allocator", "PWPFM", "ThrusterErrors"]
+
+_nnls_routine = None
+if scipy.__version__ == "1.17.1":   # the pinned scipy: the compiled routine behind
+    # scipy.optimize.nnls, called directly without the wrapper's argument checks (the
+    # allocation runs at every base-control step); any other version uses the public function
+    from scipy.optimize._slsqplib import nnls as _nnls_routine
 
 
 class Allocator:
@@ -43,10 +50,10 @@ class Allocator:
 
     def allowed(self, R_world_body: np.ndarray, p_world: np.ndarray,
                 target_center: np.ndarray, target_radius: float) -> np.ndarray:
-        to_target = (target_center - p_world) - self.layout.pos_m @ R_world_body.T
+        to_target = (target_center - p_world) - self.layout.pos_m.dot(R_world_body.T)
         dist = np.sqrt((to_target * to_target).sum(axis=1))
         # exhaust direction (minus the force direction) . line to the target
-        cosang = -(to_target @ R_world_body * self.layout.dir).sum(axis=1) / dist
+        cosang = -(to_target.dot(R_world_body) * self.layout.dir).sum(axis=1) / dist
         half = self.keepout + np.arcsin(np.minimum(target_radius / dist, 1.0))
         return cosang < np.cos(half)
 
@@ -63,7 +70,12 @@ class Allocator:
         if idx.size == 0 or not np.count_nonzero(wrench):
             return u
         b = np.concatenate([wrench, zeros])
-        x, _ = nnls(A, b, maxiter=50 * idx.size)
+        if _nnls_routine is None:
+            x, _ = nnls(A, b, maxiter=50 * idx.size)
+        else:                                          # A, b: C-contiguous float64, finite
+            x, _, info = _nnls_routine(A, b, 50 * idx.size)
+            if info == 3:
+                raise RuntimeError("Maximum number of iterations reached.")   # as nnls() does
         peak = x.max()
         if peak > 1.0:
             x /= peak
@@ -102,68 +114,55 @@ class PWPFM:
 
         Between two valve switches the filter input is constant, so after m updates the filter
         is ``F(m) = c + r^m (f - c)`` (``c = km (demand - on)``, ``r = 1 - dt/tau``), monotonic
-        in m. One vectorised pass finds the thrusters that switch within the chunk; for those
-        (a few), each later segment's first switch is found by bisection on ``F(m)``. The same
-        valve sequence as :meth:`step`; the filter state equal to rounding (``r^m`` instead
-        of m repeated updates).
+        in m: whether a thruster switches within the chunk is decided by ``F`` at the ends of
+        the steps where it may switch. For those that do (a few), the closed form is stepped
+        through the chunk, segment by segment. The same valve sequence as :meth:`step`; the
+        filter state equal to rounding (``r^m`` instead of m repeated updates). In Python
+        floats: for some twenty thrusters, cheaper than numpy calls.
         """
         L = steps
         if getattr(self, "_rp_len", 0) != L:
-            self._rpow = (1.0 - self.alpha) ** np.arange(L + 1, dtype=float)
-            self._rp = self._rpow.tolist()
-            self._J = np.arange(L)[:, None]
+            self._rp = ((1.0 - self.alpha) ** np.arange(L + 1, dtype=float)).tolist()
             self._rp_len = L
         rp, km, u_on, u_off, min_on = self._rp, self.km, self.u_on, self.u_off, self.min_on
-        f, on, cnt = self.f, self.on, self.on_steps
-        c = km * (demand_frac - on)
-        F = c + self._rpow[1:, None] * (f - c)          # after the update of step j, if no switch
-        sw = np.where(on, (F < u_off) & (cnt + self._J >= min_on), F > u_on)
-        valves = np.empty((L, len(f)), dtype=bool)
-        valves[:] = on
-        f_new, on_new, cnt_new = F[-1].copy(), on.copy(), np.where(on, cnt + L, 0)
-        for i in np.flatnonzero(sw.any(axis=0)).tolist():
-            j = int(sw[:, i].argmax())
-            d, o, fi = float(demand_frac[i]), not on[i], float(F[j, i])
-            n_on = 1 if o else 0
-            valves[j:, i] = o
-            s = j + 1                                     # first step of the new segment
-            while s < L:
-                cc = km * (d - o)
-                top = L - s                               # updates left in the chunk
-                lo = max(1, min_on - n_on + 1) if o else 1
-                m = _first(lambda m: (cc + rp[m] * (fi - cc) < u_off) if o else (cc + rp[m] * (fi - cc) > u_on),
-                           lo, top)
-                if m is None:
-                    fi = cc + rp[top] * (fi - cc)
-                    n_on = n_on + top if o else 0
-                    break
-                fi = cc + rp[m] * (fi - cc)
-                o = not o
-                n_on = 1 if o else 0
-                s += m - 1
-                valves[s:, i] = o
-                s += 1
-            f_new[i], on_new[i], cnt_new[i] = fi, o, n_on
-        self.f, self.on, self.on_steps = f_new, on_new, cnt_new
+        r1, rL = rp[1], rp[L]
+        f_new, on_new, cnt_new, switching = [], [], [], []
+        for i, (d, o, f0, n_on) in enumerate(zip(demand_frac.tolist(), self.on.tolist(), self.f.tolist(),
+                                                 self.on_steps.tolist())):
+            c = km * (d - o)
+            x = c + rL * (f0 - c)                        # after the last update, if no switch
+            if o:                                        # may close once open min_on steps
+                lo = max(1, min_on - n_on + 1)
+                switches = lo <= L and (x < u_off or c + rp[lo] * (f0 - c) < u_off)
+            else:
+                switches = x > u_on or c + r1 * (f0 - c) > u_on
+            if switches:
+                col = []
+                m = 0                                    # updates since the segment started
+                for _ in range(L):
+                    m += 1
+                    x = c + rp[m] * (f0 - c)
+                    if o:                                # open for n_on + m - 1 steps before this one
+                        if x < u_off and n_on + m - 1 >= min_on:
+                            o, n_on, f0, m = False, 0, x, 0
+                            c = km * (d - o)
+                    elif x > u_on:
+                        o, n_on, f0, m = True, 1, x, 0
+                        c = km * (d - o)
+                    col.append(o)
+                switching.append((i, col))
+                n_on += m
+            else:
+                n_on += L
+            f_new.append(x)
+            on_new.append(o)
+            cnt_new.append(n_on if o else 0)
+        valves = np.empty((L, len(f_new)), dtype=bool)
+        valves[:] = self.on
+        for i, col in switching:
+            valves[:, i] = col
+        self.f, self.on, self.on_steps = np.array(f_new), np.array(on_new), np.array(cnt_new)
         return valves
-
-
-def _first(cond, lo: int, hi: int) -> int | None:
-    """Smallest m in [lo, hi] with cond(m), for a cond that is monotonic in m (true on a prefix
-    or on a suffix of the integers), or None."""
-    if lo > hi:
-        return None
-    if cond(lo):
-        return lo
-    if not cond(hi):
-        return None
-    while hi - lo > 1:                     # cond(lo) false, cond(hi) true
-        mid = (lo + hi) // 2
-        if cond(mid):
-            hi = mid
-        else:
-            lo = mid
-    return hi
 
 
 class ThrusterErrors:
@@ -211,9 +210,9 @@ class ThrusterErrors:
             r = 1.0 - self.cool
             e = np.arange(L + 1)[:, None] - np.arange(L)[None, :] - 1       # j - 1 - i
             self._Pin = np.where(e >= 0, r ** np.maximum(e, 0), 0.0) * (self.heating * self.dt)
-            self._Pfree = r ** np.arange(L + 1, dtype=float)
+            self._Pfree = (r ** np.arange(L + 1, dtype=float))[:, None]
             self._chunk_len = L
-        dT = self._Pfree[:, None] * self.dT + self._Pin @ v          # (L + 1, n): dT before step j
+        dT = self._Pfree * self.dT + self._Pin.dot(v)                # (L + 1, n): dT before step j
         gain = self.scatter * self.pressure * (1.0 + self.thermal * dT[:L])
         gain *= self.degrade if degrade is None else degrade
         f = v * (self.layout.max_n * gain + self.bias_n)
