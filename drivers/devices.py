@@ -36,16 +36,21 @@ def _t_ns(msg: can.Message) -> int:
 
 
 class _Assembler:
-    """Collects the parts of one multi-frame sample. Frame ids -> payloads, for one counter."""
+    """Collects the parts of one multi-frame sample. Frame ids -> payloads, for one counter.
 
-    __slots__ = ("n", "counter", "parts")
+    ``first_ns``: the timestamp of the sample's first frame, which is its ``t_ns``: the closest
+    to when the device sampled (on a loaded bus the last frame can come most of a period later)."""
+
+    __slots__ = ("n", "counter", "parts", "first_ns")
 
     def __init__(self, n: int):
         self.n = n
         self.counter = -1
         self.parts: dict[int, bytes] = {}
+        self.first_ns = 0
 
-    def add(self, frame_id: int, counter: int, data: bytes, dev: DeviceCounters) -> dict[int, bytes] | None:
+    def add(self, frame_id: int, counter: int, data: bytes, dev: DeviceCounters,
+            t_ns: int) -> dict[int, bytes] | None:
         parts = self.parts
         if parts and counter != self.counter:
             dev.reject("incomplete")
@@ -53,6 +58,8 @@ class _Assembler:
         elif frame_id in parts:
             dev.reject("duplicate")
             return None
+        if not parts:
+            self.first_ns = t_ns
         self.counter = counter
         parts[frame_id] = data
         if len(parts) == self.n:
@@ -127,10 +134,10 @@ class FtDriver(Driver):
             self._route[i] = (wire.layouts("arm")[i], self.dev, self._part)
 
     def _part(self, msg: can.Message, data: bytes) -> None:
-        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev)
+        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev, _t_ns(msg))
         if parts is None:
             return
-        s = frames.decode_wrench(parts[wire.FT_A_ID], parts[wire.FT_B_ID], self.device, _t_ns(msg))
+        s = frames.decode_wrench(parts[wire.FT_A_ID], parts[wire.FT_B_ID], self.device, self._asm.first_ns)
         if self.dev.admit(s.counter, s.t_ns, s.saturated, s.status):
             self.sink(s)
 
@@ -203,10 +210,10 @@ class _MultiFrameDriver(Driver):
         raise NotImplementedError
 
     def _part(self, msg: can.Message, data: bytes) -> None:
-        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev)
+        parts = self._asm.add(msg.arbitration_id, data[0], data, self.dev, _t_ns(msg))
         if parts is None:
             return
-        s = self._decode(parts, _t_ns(msg))
+        s = self._decode(parts, self._asm.first_ns)
         if self.dev.admit(s.counter, s.t_ns, s.saturated, getattr(s, "status", 0)):
             self.sink(s)
 

@@ -2,7 +2,8 @@
 
 These frozen dataclasses are the contract between the bytes (``drivers``), the sensor firmware
 of the simulator (which encodes the same readings) and the gateway (which estimates from them).
-Time is integer nanoseconds (``t_ns``): the CAN timestamp of the frame that completed the sample.
+Time is integer nanoseconds (``t_ns``): the CAN timestamp of the sample's first frame (of a one-frame
+sample, its frame): the closest to when the device sampled.
 Frames are named in every docstring; conventions follow ../shared/METHOD.md.
 """
 from __future__ import annotations

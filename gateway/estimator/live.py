@@ -3,8 +3,11 @@
 Synchronisation policy (docs/estimator.md, "Live"):
 
 - An *epoch* is one F/T sampling instant (1 kHz). Its required members are the F/T sample of
-  every arm, the joint state of every joint and the valve command, each matched to the epoch
-  by timestamp within half an F/T period (no interpolation: every device samples at the epoch).
+  every arm, the joint state of every joint and the valve command (no interpolation: every
+  device samples at the epoch). A sample belongs to the epoch of its slot on a grid of
+  one-period slots centred on the bursts of frames: the grid's phase is placed in the widest
+  quiet gap between the first 64 members' arrival phases, then follows the bursts' middles
+  (a step's frames arrive spread over most of a period on a loaded bus).
 - An epoch is computed as soon as it is complete. When a later epoch completes first, the
   earlier one is computed with what it has (its missing inputs were lost: each bus is FIFO) and
   flagged; so is the oldest epoch when more than ``max_open`` are waiting (a silent bus).
@@ -49,10 +52,11 @@ class LiveSettings:
 
 
 class _Epoch:
-    __slots__ = ("t_ns", "ft", "joints", "valves", "open")
+    __slots__ = ("t_ns", "ft", "joints", "valves", "open", "first", "last")
 
     def __init__(self, t_ns: int, open_: bool = True):
-        self.t_ns = t_ns
+        self.t_ns = t_ns                   # the epoch's time on the grid (LiveEstimator._grid)
+        self.first = self.last = None      # earliest and latest own timestamp of its members
         self.ft: dict = {}                 # arm -> WrenchSample
         self.joints: dict = {}             # "<arm>/<joint>" -> JointSample
         self.valves: ValveCommand | None = None
@@ -62,6 +66,8 @@ class _Epoch:
 Output = Callable[[object], None]
 
 _MEMBER = {WrenchSample: 0, JointSample: 1, ValveCommand: 2}
+PHASE_LEARN_SAMPLES = 64     # members held at start to find where the sensor bursts sit in a period
+PHASE_TRACK = 64             # the grid follows the bursts' middle with this time constant (epochs)
 _SLOW = (ImuSample, TorqueCommand, ThrusterCommand)
 
 
@@ -97,6 +103,9 @@ class LiveEstimator:
         self._cmd: dict[str, tuple[float, int]] = {}
         self._thr_cmd: ThrusterCommand | None = None
         self._gyro_t: int | None = None
+        self._center: int | None = None         # a time at the centre of a burst: the grid's phase
+        self._learning: list | None = []         # samples held until the phase is known
+        self._learn_members = 0
         self._faults: set[str] = set()
         self.epochs = 0
         self.good = 0
@@ -122,6 +131,13 @@ class LiveEstimator:
 
     # -- input -------------------------------------------------------------------------------
     def add(self, sample) -> None:
+        if self._learning is not None:
+            self._learning.append(sample)
+            if isinstance(sample, (WrenchSample, JointSample, ValveCommand)):
+                self._learn_members += 1
+                if self._learn_members >= PHASE_LEARN_SAMPLES:
+                    self._lock_phase()
+            return
         kind = _MEMBER.get(sample.__class__)
         if kind is None:
             if isinstance(sample, WrenchSample):
@@ -135,7 +151,12 @@ class LiveEstimator:
                 return
             else:
                 return
-        e = self._member(sample.t_ns)
+        t = sample.t_ns
+        e = self._member(self._grid(t))
+        if e.first is None or t < e.first:
+            e.first = t
+        if e.last is None or t > e.last:
+            e.last = t
         if kind == 0:
             e.ft[sample.device] = sample
         elif kind == 1:
@@ -143,6 +164,26 @@ class LiveEstimator:
         else:
             e.valves = sample
         self._advance(e)
+
+    def _lock_phase(self) -> None:
+        """Place the epoch grid: a boundary in the middle of the widest quiet gap between the held
+        members' arrival phases (between one step's burst of frames and the next), then process
+        the held samples. Depends only on the set of timestamps, not on their order."""
+        held, self._learning = self._learning, None
+        ts = [x.t_ns for x in held if isinstance(x, (WrenchSample, JointSample, ValveCommand))]
+        ts = ts or [x.t_ns for x in held] or [0]
+        t0, p = min(ts), self.period_ns
+        ph = sorted({(t - t0) % p for t in ts})
+        gaps = [(ph[0] + p - ph[-1], ph[-1])] + [(b - a, a) for a, b in zip(ph, ph[1:])]
+        width, start = max(gaps)
+        self._center = t0 + start + width // 2 + self.half      # half a period from the boundary
+        for x in held:
+            self.add(x)
+
+    def _grid(self, t: int) -> int:
+        """The grid time of the epoch a sample stamped ``t`` belongs to (within half a period)."""
+        c, p = self._center, self.period_ns
+        return c + ((t - c + self.half) // p) * p
 
     def _member(self, t: int) -> _Epoch:
         half = self.half
@@ -184,6 +225,8 @@ class LiveEstimator:
 
     def flush(self) -> None:
         """Compute every waiting epoch with what it has (end of a log or of a run)."""
+        if self._learning is not None:
+            self._lock_phase()
         ready, self._open = self._open, []
         for e in ready:
             e.open = False
@@ -193,12 +236,14 @@ class LiveEstimator:
     def _apply_pending(self, t: int) -> None:
         keep = []
         lim = t - self.half
+        grid = self._grid
         for s in self._pending:
-            if s.t_ns > lim:
+            if grid(s.t_ns) > lim:
                 keep.append(s)
             elif isinstance(s, ImuSample):
-                self.kf.imu(s.t_ns, np.asarray(s.accel_m_s2), np.asarray(s.rate_rad_s))
-                self._gyro_t = s.t_ns
+                g = grid(s.t_ns)                 # the IMU sample ends the steps of its grid epoch
+                self.kf.imu(g, np.asarray(s.accel_m_s2), np.asarray(s.rate_rad_s))
+                self._gyro_t = g
                 self._note(s.saturated, s.status & wire.IMU_FAULT, "imu")
             elif isinstance(s, TorqueCommand):
                 self._cmd[s.device] = (s.torque_nm, s.t_ns)
@@ -228,6 +273,8 @@ class LiveEstimator:
         t = e.t_ns
         if t > self._last_closed:
             self._last_closed = t
+        if e.first is not None and self._complete(e):      # the grid follows the bursts (drift)
+            self._center += ((e.first + e.last) // 2 - t) // PHASE_TRACK
         self.epochs += 1
         self._faults = set()
         if self._pending:
