@@ -313,7 +313,8 @@ def role_gateway(a) -> int:
             stack.callback(bus.shutdown)
         conf = make_config(connect=[a.endpoint]) if a.router else make_config(listen=[a.endpoint])
         session = stack.enter_context(zenoh.open(conf))
-        gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate)
+        gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate,
+                            publish_samples=not a.no_samples)
         pipe = gw.pipeline
         emit0 = pipe.emit
         if a.bare:
@@ -607,7 +608,8 @@ def _host_cpu():
 
 def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "efforts", transport: str = "auto",
             topology: str = "one", router: bool = False, source: str = "pregen", bare: bool = False,
-            switch_interval: float = 0.0, nice: int = 0, slowdown: float = 1.0, progress=None) -> dict:
+            switch_interval: float = 0.0, nice: int = 0, slowdown: float = 1.0, samples: bool = True,
+            progress=None) -> dict:
     """Run the processes for ``WARMUP_S + seconds`` of frames; return the raw records and context."""
     say = progress or (lambda s: None)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1",
@@ -637,7 +639,8 @@ def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "e
             if router:
                 start("router", "--endpoint", ep).read()
             gw = start("gateway", "--endpoint", ep, "--transport", transport, "--out", str(tmp / "gateway.pickle"),
-                       *["--bare"] * bare, *["--router"] * router, *["--no-estimate"] * split, *si)
+                       *["--bare"] * bare, *["--router"] * router, *["--no-estimate"] * split,
+                       *["--no-samples"] * (not samples), *si)
             ready = gw.read()
             if split:
                 est = start("estimator", "--endpoint", ep, "--listen", ep2, "--out", str(tmp / "estimator.pickle"), *si)
@@ -908,6 +911,9 @@ def main(argv=None) -> int:
                     help="pre-generated frames (default) or the simulator running live")
     ap.add_argument("--router", action="store_true", help="gateway and subscriber meet at a zenoh router process")
     ap.add_argument("--bare", action="store_true", help="only the emit wrapper in the gateway (no per-frame stages)")
+    ap.add_argument("--no-samples", action="store_true",
+                    help="the gateway publishes efforts and health only, not every decoded sample "
+                         "(bsc gateway --no-samples)")
     ap.add_argument("--slowdown", type=float, default=1.0, metavar="K",
                     help="diagnostic: send the frames K times slower than real time (not the nominal rate)")
     ap.add_argument("--switch-interval", type=float, default=0.0, metavar="S",
@@ -931,7 +937,7 @@ def main(argv=None) -> int:
     res = analyse(measure(a.seconds, pacing=a.pacing, subscribe=a.subscribe, transport=a.transport,
                           topology=a.topology, router=a.router, source=a.source, bare=a.bare,
                           switch_interval=a.switch_interval, nice=a.nice, slowdown=a.slowdown,
-                          progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
+                          samples=not a.no_samples, progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
     print(json.dumps(res, indent=1) if a.json else report(res))
     return 0
 

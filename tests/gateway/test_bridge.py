@@ -175,3 +175,31 @@ def test_epochs_flushed_at_close_are_still_published(sessions):
         sub.undeclare()
     efforts = [o for _, o in col.got if isinstance(o, JointEfforts)]
     assert all(not e.good and any(f.startswith("missing:") for f in e.flags) for e in efforts)
+
+
+def test_no_samples_publishes_efforts_but_no_sensor_samples(sessions):
+    """``bsc gateway --no-samples``: decoded samples stay inside the gateway, efforts go out."""
+    pub_s, sub_s = sessions
+    robot = robot_description.load("paper_robot")
+    wm = wire.WireMap.from_robot(robot)
+    prefix = f"bsc-nosamples-{uuid.uuid4().hex}"
+    col = Collector(lambda got: any(isinstance(o, JointEfforts) for _, o in got))
+    sub = sub_s.declare_subscriber(keys.everything("paper_robot"), col)
+    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), receive_own_messages=False,
+                        ignore_config=True) for n in wm.buses}
+    tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
+                 ignore_config=True)
+    try:
+        gw = GatewayService(robot, buses, pub_s, publish_samples=False).start()
+        for c in range(3):
+            for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
+                tx.send(m)
+        assert gw.drain(10.0)
+        gw.close()
+        assert col.done.wait(10.0)
+    finally:
+        tx.shutdown()
+        for b in buses.values():
+            b.shutdown()
+        sub.undeclare()
+    assert not [k for k, _ in col.got if "/sensors/" in k]
