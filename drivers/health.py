@@ -34,13 +34,14 @@ REASONS = ("error_frame", "extended_id", "unknown_id", "dlc", "remote_frame", "f
            "duplicate", "late", "incomplete")
 DEFAULT_STALE_PERIODS = 10
 RESYNC_PERIODS = 100   # a device silent for longer has resumed: trust the time, not the counter alone
+SPACING_WARMUP = 8     # samples before the spacing is known (and a long gap can mean an outage)
 
 
 class DeviceCounters:
     """Per-device counters and the sample-counter sequence check (8-bit counters)."""
 
     __slots__ = ("device", "bus", "period_ns", "stale_periods", "fault_mask", "samples", "lost", "saturated",
-                 "rejected", "last_t_ns", "last_counter", "status")
+                 "rejected", "last_t_ns", "last_counter", "status", "spacing_ns")
 
     def __init__(self, device: str, bus: str, period_ns: int, fault_mask: int = 0,
                  stale_periods: int = DEFAULT_STALE_PERIODS):
@@ -51,6 +52,7 @@ class DeviceCounters:
         self.last_t_ns = 0
         self.last_counter: int | None = None
         self.status = 0
+        self.spacing_ns = period_ns       # smoothed time between consecutive samples, >= period_ns
 
     def reject(self, reason: str, n: int = 1) -> None:
         self.rejected[reason] += n
@@ -59,19 +61,28 @@ class DeviceCounters:
         """Check a completed sample's counter; False (and counted) if it must be dropped.
 
         The 8-bit counter alone tells a gap, a duplicate and a late (reordered) sample apart only
-        within half its range. After a silence of more than :data:`RESYNC_PERIODS` periods (by
+        within half its range. After a silence of more than :data:`RESYNC_PERIODS` sample steps (by
         the sample time ``t_ns``, when given) the device has resumed: the sample is kept and the
-        samples lost are the count congruent to the counter step that best fits the time away.
+        samples lost are the count congruent to the counter step that best fits the time away. A
+        sample step's time is the device's period, or the observed spacing when the samples come
+        slower (a source slower than real time, e.g. a lockstep simulator in a VM, is no outage).
         """
         last = self.last_counter
         if last is not None:
             d = (counter - last) & 0xFF
-            if t_ns is not None and self.samples and t_ns - self.last_t_ns > RESYNC_PERIODS * self.period_ns:
-                steps = (t_ns - self.last_t_ns) / self.period_ns
-                n = d + 256 * max(0, round((steps - d) / 256))
-                self.lost += max(n, 1) - 1
-                self.last_counter = counter
-                return True
+            if t_ns is not None and self.samples:
+                gap = t_ns - self.last_t_ns
+                # a sample step's time here: a source slower than real time (a VM) is no outage
+                spacing = self.spacing_ns
+                if self.samples >= SPACING_WARMUP and gap > RESYNC_PERIODS * spacing:
+                    n = d + 256 * max(0, round((gap / spacing - d) / 256))
+                    self.lost += max(n, 1) - 1
+                    self.last_counter = counter
+                    return True
+                if 0 < d < 128 and gap > 0:      # follow the observed spacing per sample step
+                    step = gap // d
+                    self.spacing_ns = max(self.period_ns, step if self.samples < SPACING_WARMUP
+                                          else spacing + (step - spacing) // 16)
             if d == 0:
                 self.rejected["duplicate"] += 1
                 return False

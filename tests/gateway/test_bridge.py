@@ -146,6 +146,21 @@ def test_gateway_command_publishes_health_over_loopback():
     assert "bsc gateway: robot paper_robot" in out, err
 
 
+def subscribed(pub_s, sub_s) -> None:
+    """Wait until the subscriptions sub_s declared so far are known to pub_s (a put before that
+    reaches nobody): declare a probe subscriber after them and put until a probe arrives."""
+    got = threading.Event()
+    probe = sub_s.declare_subscriber("bsc-test/probe", lambda _s: got.set())
+    try:
+        for _ in range(100):
+            pub_s.put("bsc-test/probe", b"")
+            if got.wait(0.1):
+                return
+        pytest.fail("the subscription never reached the publishing session")
+    finally:
+        probe.undeclare()
+
+
 def test_epochs_flushed_at_close_are_still_published(sessions):
     """Epochs still waiting for inputs when the service closes are computed by the final flush
     (flagged, never good) and must reach subscribers, not vanish."""
@@ -160,6 +175,7 @@ def test_epochs_flushed_at_close_are_still_published(sessions):
     tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
                  ignore_config=True)
     try:
+        subscribed(pub_s, sub_s)
         gw = GatewayService(robot, buses, pub_s).start()
         for c in range(3):               # arm0's F/T only: its epoch never completes
             for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
@@ -190,6 +206,7 @@ def test_no_samples_publishes_efforts_but_no_sensor_samples(sessions):
     tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
                  ignore_config=True)
     try:
+        subscribed(pub_s, sub_s)
         gw = GatewayService(robot, buses, pub_s, publish_samples=False).start()
         for c in range(3):
             for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
