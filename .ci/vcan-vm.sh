@@ -12,21 +12,26 @@
 # What the command sees: the host's root filesystem (virtio-9p, read-write, as root: it
 # writes the host's files for real), the same working directory, the caller's exported
 # environment (so the host's .venv works as is), lo and vcan0..vcan<N-1> up and nothing else
-# on the network, stdin /dev/null, BSC_VM=1 and BSC_VM_VCANS=<N> set, TMPDIR on a guest
+# on the network, 8 MiB socket receive buffers (net.core.rmem_default: a receiver starved of
+# the one vCPU by a lockstep sender keeps every frame), stdin /dev/null, BSC_VM=1 and BSC_VM_VCANS=<N> set, TMPDIR on a guest
 # tmpfs (pytest's capture ftruncate()s unlinked temp files, which 9p cannot do).
 # stdout and stderr come back merged on this script's stdout.
 #
 # First run (then cached under BSC_VM_CACHE): apt-get installs qemu-system-x86 and
-# busybox-static if missing (needs root), `apt-get download`s Debian's current
-# linux-image-amd64 (~70 MB), unpacks it with dpkg -x (the host's /boot and /lib/modules
-# are not touched), and builds a small initramfs with busybox and the CAN + 9p modules.
-# The image is rebuilt when this script changes or BSC_VM_REBUILD=1.
+# busybox-static if missing (needs root; qemu also when only the image is cached),
+# `apt-get download`s Debian's current linux-image-amd64 (~70 MB), unpacks it with dpkg -x
+# (the host's /boot and /lib/modules are not touched), and builds a small initramfs with
+# busybox and the CAN + 9p modules (about 15 s in all).
+# The image is rebuilt when its recipe in this script (the guest's /init, the build steps, the
+# module list) changes, or with BSC_VM_REBUILD=1. A missing or stale cache is rebuilt the same way.
 #
 # Knobs (environment, optional):
 #   BSC_VM_VCANS=1       number of vcan interfaces, vcan0..vcan<N-1>   (default 1)
 #   BSC_VM_FD=1          1: CAN FD capable (mtu 72); 0: classic only (mtu 16)  (default 1)
 #   BSC_VM_MEM=1024      guest RAM, MiB
-#   BSC_VM_TIMEOUT=1800  wall-clock limit, s (exit 124 when hit)
+#   BSC_VM_TIMEOUT=1800  wall-clock limit of the whole run, s (exit 124 when hit)
+#   BSC_VM_BOOT_TIMEOUT=120  limit until the guest starts COMMAND, s: a VM that does not boot
+#                        (kernel hang, 9p mount stuck) fails fast with exit 125, not after TIMEOUT
 #   BSC_VM_ACCEL=tcg     tcg | kvm. Default tcg: this machine's /dev/kvm is nested and cannot
 #                        run a stock kernel. Under TCG, boot ~3 s, Python ~14x slower.
 #   BSC_VM_CACHE=DIR     kernel, initramfs, job dirs (default ${XDG_CACHE_HOME:-~/.cache}/bsc-vcan-vm;
@@ -43,7 +48,9 @@ die() { echo "vcan-vm: $*" >&2; exit 125; }
 
 NVCAN=${BSC_VM_VCANS:-1}; FD=${BSC_VM_FD:-1}; MEM=${BSC_VM_MEM:-1024}
 TIMEOUT=${BSC_VM_TIMEOUT:-1800}; ACCEL=${BSC_VM_ACCEL:-tcg}; DEBUG=${BSC_VM_DEBUG:-0}
+BOOT_TIMEOUT=${BSC_VM_BOOT_TIMEOUT:-120}
 [[ "$NVCAN" =~ ^[0-9]+$ ]] && [ "$NVCAN" -le 16 ] || die "BSC_VM_VCANS must be 0..16, not '$NVCAN'"
+[[ "$TIMEOUT" =~ ^[0-9]+$ ]] && [[ "$BOOT_TIMEOUT" =~ ^[0-9]+$ ]] || die "BSC_VM_TIMEOUT and BSC_VM_BOOT_TIMEOUT are whole seconds"
 [[ "$CACHE" != *,* ]] || die "the cache path may not contain a comma: $CACHE"
 MODULES=(virtio_pci 9pnet_virtio 9p can can_raw can_bcm can_dev vcan)
 
@@ -90,8 +97,13 @@ while [ $i -lt "$NVCAN" ]; do
   ip link set vcan$i up || halt "ip link set vcan$i up"
   i=$((i + 1))
 done
+# 8 MiB socket receive buffers (default ~210 kB, 278 CAN frames): under TCG a receiver that
+# loses the CPU to a lockstep sender for a while must not lose frames, which a real host
+# running at real-time rates never needs
+echo 8388608 > /proc/sys/net/core/rmem_default; echo 8388608 > /proc/sys/net/core/rmem_max
 hostname bsc-vm
 say "job starts at $(cut -d' ' -f1 /proc/uptime) s"
+: > /job/booted                                     # the host's boot watchdog stops here
 SH=/bin/sh; [ -x $R/bin/bash ] && SH=/bin/bash
 chroot $R $SH /run/bsc-vm-job/inner.sh </dev/null
 echo $? > /job/rc
@@ -102,18 +114,27 @@ INIT
 }
 
 # ------------------------------------------------------------- one-time image build
-build_image() {
-  set -e
-  local missing=()
-  for p in qemu-system-x86 busybox-static; do
+# What the image is made from; its hash in $CACHE/stamp decides a rebuild.
+recipe() { { declare -f guest_init build_image; echo "${MODULES[*]}"; } | md5sum | cut -c1-32; }
+
+# Debian packages this runner needs on the host, installed with apt-get when missing (root).
+ensure_packages() {
+  local missing=() p
+  for p in "$@"; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
   done
-  if [ ${#missing[@]} -gt 0 ]; then
-    [ "$(id -u)" = 0 ] || die "install ${missing[*]} first (apt-get, as root)"
-    echo "vcan-vm: installing ${missing[*]}" >&2
-    apt-get update -qq >&2
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
-  fi
+  [ ${#missing[@]} -eq 0 ] && return 0
+  [ "$(id -u)" = 0 ] || die "install ${missing[*]} first (apt-get, as root)"
+  command -v apt-get >/dev/null || die "install ${missing[*]} first (no apt-get here)"
+  echo "vcan-vm: installing ${missing[*]}" >&2
+  apt-get update -qq >&2 || die "apt-get update failed"
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2 \
+    || die "apt-get install ${missing[*]} failed"
+}
+
+build_image() {
+  set -e
+  ensure_packages busybox-static
   local kpkg
   kpkg=$(apt-cache depends linux-image-amd64 2>/dev/null | awk '/Depends: linux-image-[0-9]/{print $2; exit}')
   if [ -z "$kpkg" ]; then
@@ -180,20 +201,23 @@ PY
   (cd "$ird" && find . | /bin/busybox cpio -o -H newc 2>/dev/null | gzip -1) > "$work/initramfs.cpio.gz"
   mv "$work/vmlinux" "$CACHE/vmlinux"
   mv "$work/initramfs.cpio.gz" "$CACHE/initramfs.cpio.gz"
-  echo "$kver $(md5sum < "$SELF" | cut -c1-32)" > "$CACHE/stamp"
+  echo "$kver $(recipe)" > "$CACHE/stamp"
   set +e
 }
 
+command -v qemu-system-x86_64 >/dev/null || ensure_packages qemu-system-x86
+command -v qemu-system-x86_64 >/dev/null || die "qemu-system-x86_64 is missing"
 mkdir -p "$CACHE/jobs" || die "cannot create $CACHE"
-want=" $(md5sum < "$SELF" | cut -c1-32)"
-if [ "${BSC_VM_REBUILD:-0}" = 1 ] || [ ! -s "$CACHE/vmlinux" ] || [ ! -s "$CACHE/initramfs.cpio.gz" ] \
-   || [[ "$(cat "$CACHE/stamp" 2>/dev/null)" != *"$want" ]]; then
+want=" $(recipe)"
+image_ok() {
+  [ -s "$CACHE/vmlinux" ] && [ -s "$CACHE/initramfs.cpio.gz" ] && [[ "$(cat "$CACHE/stamp" 2>/dev/null)" == *"$want" ]]
+}
+if [ "${BSC_VM_REBUILD:-0}" = 1 ] || ! image_ok; then
   # one builder at a time; a second caller waits and then finds the image built
   ( exec 9>"$CACHE/build.lock"; flock 9
-    if [ "${BSC_VM_REBUILD:-0}" = 1 ] || [[ "$(cat "$CACHE/stamp" 2>/dev/null)" != *"$want" ]]; then build_image; fi
+    if [ "${BSC_VM_REBUILD:-0}" = 1 ] || ! image_ok; then build_image; fi
   ) || die "building the VM image failed"
 fi
-command -v qemu-system-x86_64 >/dev/null || die "qemu-system-x86_64 is missing"
 
 # ------------------------------------------------------------------------ the job
 JOB=$(mktemp -d "$CACHE/jobs/job.XXXXXX") || die "cannot make a job dir"
@@ -224,6 +248,7 @@ LOGLEVEL=1; [ "$DEBUG" = 1 ] && LOGLEVEL=7
 APPEND="console=ttyS0 loglevel=$LOGLEVEL panic=-1 edd=off tsc=reliable no_timer_check mitigations=off"
 APPEND+=" rcupdate.rcu_expedited=1 bscvm.debug=$DEBUG bscvm.vcans=$NVCAN bscvm.fd=$FD"
 
+# qemu in the background, so that a guest that never reaches the command is caught early
 timeout -k 10 "$TIMEOUT" qemu-system-x86_64 "${ACC[@]}" \
   -machine q35 -bios /usr/share/qemu/qboot.rom -nodefaults -no-user-config \
   -m "$MEM" -smp 1 -display none -monitor none -serial stdio -no-reboot \
@@ -232,7 +257,22 @@ timeout -k 10 "$TIMEOUT" qemu-system-x86_64 "${ACC[@]}" \
   -device virtio-9p-pci,fsdev=hostroot,mount_tag=hostroot \
   -fsdev local,id=job,path="$JOB",security_model=none \
   -device virtio-9p-pci,fsdev=job,mount_tag=bscjob \
-  < /dev/null
+  < /dev/null &
+QPID=$!
+cleanup() { kill "$QPID" 2>/dev/null; wait "$QPID" 2>/dev/null; [ "${BSC_VM_KEEP:-0}" = 1 ] || rm -rf "$JOB"; }
+trap cleanup EXIT
+trap 'exit 130' INT
+trap 'exit 143' TERM
+boot_by=$((SECONDS + BOOT_TIMEOUT))
+while [ ! -e "$JOB/booted" ] && kill -0 "$QPID" 2>/dev/null; do
+  if [ "$SECONDS" -ge "$boot_by" ]; then
+    echo "vcan-vm: the VM did not start the command within ${BOOT_TIMEOUT} s (BSC_VM_BOOT_TIMEOUT);" \
+         "stopped it. Retry with BSC_VM_DEBUG=1 to see the kernel and init messages" >&2
+    exit 125
+  fi
+  sleep 0.2
+done
+wait "$QPID"
 qrc=$?
 if [ -s "$JOB/rc" ]; then
   exit "$(cat "$JOB/rc")"

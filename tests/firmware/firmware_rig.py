@@ -8,6 +8,7 @@ F/T, joint state and valve commands every step, torque commands every 2 ms and t
 from __future__ import annotations
 
 import copy
+import math
 import threading
 from collections import defaultdict
 
@@ -44,12 +45,21 @@ class Rig:
             for d in drivers:
                 d.on_message_received(msg)
 
-    def health(self, now_ns: int) -> dict:
+    def health(self, now_ns: int, pace: float = 1.0) -> dict:
+        """Every device's health at ``now_ns``. ``pace``: wall-clock time per simulated time of
+        the stream the drivers saw (1: real time; a lockstep firmware over real CAN in a slow VM
+        runs far slower): the drivers' staleness budget of ``stale_periods`` nominal periods
+        then counts periods of the stream as it ran."""
         out = {}
         for _, drivers in self.listeners.values():
             for d in drivers:
-                for h in d.health(now_ns):
-                    out[h.device] = h
+                for c in d.counters():
+                    periods = c.stale_periods
+                    c.stale_periods = math.ceil(periods * max(1.0, pace))
+                    try:
+                        out[c.device] = c.snapshot(now_ns)
+                    finally:
+                        c.stale_periods = periods
         return out
 
     def bus_health(self, now_ns: int) -> dict:

@@ -5,12 +5,15 @@ the sender process (``python tests/vcan/_vcan_traffic.py CHANNELS``, a separate 
 device would be) sends them on real SocketCAN buses. It is driven line by line on stdin::
 
     samples <bus> <first> <count>   send samples with counters first..first+count-1 of <bus>
+    resume <bus> <count>            send <count> samples as a device back from a silence does: its
+                                    counter went on at its nominal period meanwhile, so the first
+                                    one is the last delivered + the periods elapsed since (wall clock)
     faults <bus>                    send FAULT_FRAMES on <bus>
     quit
 
 and answers each command with one line ``ok <sent> <failed>`` (``failed``: frames the kernel
-refused, e.g. ENETDOWN while the interface is down). Sample values depend only on (bus, counter),
-so both sides agree without sharing state.
+refused, e.g. ENETDOWN while the interface is down); ``resume`` adds the first counter it used.
+Sample values depend only on (bus, counter), so both sides agree without sharing state.
 """
 from __future__ import annotations
 
@@ -101,9 +104,28 @@ def _send_all(bus: can.BusABC, msgs: list[can.Message]) -> tuple[int, int]:
     return sent, failed
 
 
+def period_s(bus: str) -> float:
+    """Nominal period of the samples of ``bus`` (its first frame's cycle time in the DBC)."""
+    from drivers import wire
+
+    first = sample_messages(bus, 0)[0].arbitration_id
+    return wire.layouts("spacecraft" if bus == SPACECRAFT else "arm")[first].cycle_ms / 1000.0
+
+
 def serve(channels: dict[str, str]) -> int:
     buses = {name: can.Bus(interface="socketcan", channel=ch, fd=True, ignore_config=True)
              for name, ch in channels.items()}
+    delivered: dict[str, tuple[int, float]] = {}      # bus -> (counter, wall time) of its last sample sent
+
+    def send_samples(bus: str, counters) -> tuple[int, int]:
+        sent = failed = 0
+        for k in counters:                  # one sample at a time: a frame leaves as soon as it is built
+            s, f = _send_all(buses[bus], sample_messages(bus, k))
+            sent, failed = sent + s, failed + f
+            if f == 0:
+                delivered[bus] = (k, time.time())
+        return sent, failed
+
     try:
         for line in sys.stdin:
             cmd = line.split()
@@ -113,15 +135,16 @@ def serve(channels: dict[str, str]) -> int:
                 break
             if cmd[0] == "samples":
                 bus, first, count = cmd[1], int(cmd[2]), int(cmd[3])
-                msgs = [m for k in range(first, first + count) for m in sample_messages(bus, k)]
+                print("ok %d %d" % send_samples(bus, range(first, first + count)), flush=True)
+            elif cmd[0] == "resume":
+                bus, count = cmd[1], int(cmd[2])
+                last, at = delivered[bus]
+                first = last + max(1, round((time.time() - at) / period_s(bus)))
+                print("ok %d %d %d" % (*send_samples(bus, range(first, first + count)), first), flush=True)
             elif cmd[0] == "faults":
-                bus = cmd[1]
-                msgs = [f for f, _, _ in fault_frames(bus)]
+                print("ok %d %d" % _send_all(buses[cmd[1]], [f for f, _, _ in fault_frames(cmd[1])]), flush=True)
             else:
                 print(f"error unknown command {cmd[0]!r}", flush=True)
-                continue
-            sent, failed = _send_all(buses[bus], msgs)
-            print(f"ok {sent} {failed}", flush=True)
     finally:
         for b in buses.values():
             b.shutdown()
