@@ -72,9 +72,12 @@ class DeviceCounters:
             d = (counter - last) & 0xFF
             if t_ns is not None and self.samples:
                 gap = t_ns - self.last_t_ns
-                # a sample step's time here: a source slower than real time (a VM) is no outage
+                # a sample step's time here: a source slower than real time (a VM) is no outage.
+                # A counter behind (or equal) after more than RESYNC_PERIODS nominal periods is no
+                # reordered or duplicated frame either: the device went on counting while away.
                 spacing = self.spacing_ns
-                if self.samples >= SPACING_WARMUP and gap > RESYNC_PERIODS * spacing:
+                limit = RESYNC_PERIODS * (spacing if 0 < d < 128 else self.period_ns)
+                if self.samples >= SPACING_WARMUP and gap > limit:
                     n = d + 256 * max(0, round((gap / spacing - d) / 256))
                     self.lost += max(n, 1) - 1
                     self.last_counter = counter

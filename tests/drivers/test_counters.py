@@ -48,3 +48,15 @@ def test_a_source_slower_than_real_time_is_not_an_outage(slow):
     ks = list(range(600)) + list(range(603, 1000))          # samples 600..602 lost
     assert all(dev.admit(k & 0xFF, k * MS * slow, False, 0) for k in ks)
     assert dev.lost == 3 and not dev.rejected
+
+
+def test_a_slow_source_back_from_an_outage_with_its_counter_ahead():
+    """Samples came 3x slower than nominal, then the bus was down for 150 ms while the device went
+    on counting at its nominal period: the counter step (150) reads 'behind' mod 256, yet it is
+    an outage, counted exactly (the vcan bus down/up test under QEMU)."""
+    dev = DeviceCounters("arm1", "arm1", MS)
+    assert all(dev.admit(k, 3 * k * MS, False, 0) for k in range(100))
+    t_down = 3 * 99 * MS
+    first = 99 + 150
+    assert all(dev.admit((first + i) & 0xFF, t_down + 150 * MS + 3 * i * MS, False, 0) for i in range(50))
+    assert dev.lost == 149 and not dev.rejected
