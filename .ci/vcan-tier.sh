@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The SocketCAN tier: the tests marked `vcan` run inside a VM whose kernel has vcan
-# (.ci/vcan-vm.sh), with one vcan per bus of the paper robot: arm0 -> vcan0, arm1 -> vcan1,
-# spacecraft -> vcan2. .ci/run runs it after the main suite.
+# (.ci/vcan-vm.sh), with one vcan per bus: vcan0..vcan3 (the paper robot uses three: arm0, arm1,
+# spacecraft; three_arm four). .ci/run runs it after the main suite.
 #
 #   .ci/vcan-tier.sh [PYTEST OPTIONS...]             every test marked vcan, e.g. -x --durations=0
 #   .ci/vcan-tier.sh [PYTEST OPTIONS...] PATH...     only those files/dirs/node ids, e.g. -x tests/vcan
@@ -32,7 +32,7 @@ fi
 # the tests start. pytest's rewritten test modules come from the host collection below.
 env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -m compileall -q -j 0 -x '/\.' . >/dev/null 2>&1 || true
 export OPENBLAS_NUM_THREADS=1 PYTHONDONTWRITEBYTECODE=1
-export BSC_VM_VCANS=${BSC_VM_VCANS:-3} BSC_VM_TIMEOUT=${BSC_VM_TIMEOUT:-900}
+export BSC_VM_VCANS=${BSC_VM_VCANS:-4} BSC_VM_TIMEOUT=${BSC_VM_TIMEOUT:-900}
 # -p no:cacheprovider: the guest would write .pytest_cache into the host tree as root
 PYTEST=(.venv/bin/python -m pytest -q -p no:cacheprovider)
 selected=0

@@ -6,7 +6,6 @@ from __future__ import annotations
 import time
 
 import can
-import pytest
 
 from drivers import wire
 
@@ -61,8 +60,6 @@ def test_capture_scenario_over_buses(bus_tier):
 
 
 def test_three_arm_briefly_over_buses(bus_tier):
-    if bus_tier[0] == "socketcan":
-        pytest.skip("three_arm has 4 buses; the vcan tier provides 3")
     sim, fw, rig, readings, stamps = _run_over(bus_tier, "three_arm", 0.2)
     n = check_against_readings(sim.robot, readings, rig.samples, stamps=stamps)
     assert n["left/j3"] == 200 and n["imu"] == 100
