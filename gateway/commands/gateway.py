@@ -37,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
-def channels(spec: list[str], buses: list[str]) -> dict[str, str]:
+def channels(spec: list[str], buses: list[str], *, every: bool = True) -> dict[str, str]:
+    """``--channel`` values -> {bus: channel}: one prefix (every bus), or BUS=CHANNEL pairs (for
+    every bus, or with ``every=False`` for some: a replay plays only the buses named)."""
     from drivers.wire import channel_name
     from gateway.cli import UserError
 
@@ -49,11 +51,32 @@ def channels(spec: list[str], buses: list[str]) -> dict[str, str]:
             raise UserError("--channel: give one prefix, or BUS=CHANNEL pairs")
         return {b: channel_name(spec[0], b) for b in buses}
     out = dict(c.split("=", 1) for c in pairs)
-    unknown, missing = set(out) - set(buses), set(buses) - set(out)
+    unknown, missing = set(out) - set(buses), set(buses) - set(out) if every else set()
     if unknown or missing:
-        raise UserError(f"--channel: buses are {', '.join(buses)}"
+        raise UserError(f"--channel: buses are {', '.join(buses) or 'none'}"
                         + (f"; unknown {', '.join(sorted(unknown))}" if unknown else "")
                         + (f"; missing {', '.join(sorted(missing))}" if missing else ""))
+    return out
+
+
+def open_can(stack, interface: str, chans: dict[str, str], buses: list[str], *, fd: bool = False) -> dict:
+    """Open ``chans`` ({bus: channel}) on ``interface`` into the ExitStack ``stack``; a bus that
+    cannot open is one UserError line. On ``udp_multicast`` each bus gets the port of its place in
+    ``buses`` (the robot's bus order, ``drivers.wire.udp_port``), as the simulator's firmware sends."""
+    import can
+
+    from drivers.wire import udp_port
+    from gateway.cli import UserError
+
+    out = {}
+    for name, ch in chans.items():
+        kw = {"fd": True} if fd else {}
+        if interface == "udp_multicast":
+            kw["port"] = udp_port(buses.index(name))
+        try:
+            out[name] = stack.enter_context(can.Bus(interface=interface, channel=ch, ignore_config=True, **kw))
+        except (can.CanError, ImportError, ValueError, OSError) as exc:
+            raise UserError(f"cannot open CAN bus {name} ({interface} {ch}): {exc}") from None
     return out
 
 
@@ -62,7 +85,6 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    import can
     import zenoh
 
     import robot_description
@@ -81,14 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with contextlib.ExitStack() as stack:
-        buses = {}
-        for i, (name, ch) in enumerate(chans.items()):
-            kw = {"fd": True} if args.fd else {}
-            if args.interface == "udp_multicast":
-                from drivers.wire import udp_port
-
-                kw["port"] = udp_port(i)
-            buses[name] = stack.enter_context(can.Bus(interface=args.interface, channel=ch, ignore_config=True, **kw))
+        buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd)
         session = stack.enter_context(zenoh.open(config_from_args(args)))
         rec = None
         if args.record is not None:

@@ -264,16 +264,9 @@ def run(args: argparse.Namespace) -> int:
                        "zenoh_keyexpr": keyexpr or ""}))
             buses = {}
             if chans:
-                import can
+                from gateway.commands.gateway import open_can
 
-                for name, ch in chans.items():
-                    kw = {"fd": True} if args.fd else {}
-                    try:
-                        buses[name] = stack.enter_context(can.Bus(
-                            interface=args.interface, channel=ch, ignore_config=True, **kw))
-                    except (can.CanError, ImportError, ValueError) as exc:
-                        raise UserError(f"cannot open CAN bus {name} ({args.interface} "
-                                        f"{ch}): {exc}") from None
+                buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd)
             session = None
             if keyexpr is not None:
                 import zenoh

@@ -68,25 +68,6 @@ def _warn(text: str) -> None:
     print(f"bsc replay: warning: {text}", file=sys.stderr, flush=True)
 
 
-def _bus_channels(spec: list[str], buses: list[str]) -> dict[str, str]:
-    from drivers.wire import channel_name
-    from gateway.cli import UserError
-
-    pairs = [c for c in spec if "=" in c]
-    if pairs and len(pairs) != len(spec):
-        raise UserError("--channel: give either one prefix or BUS=CHANNEL pairs")
-    if not pairs:
-        if len(spec) != 1:
-            raise UserError("--channel: give one prefix, or BUS=CHANNEL pairs")
-        return {b: channel_name(spec[0], b) for b in buses}
-    out = dict(c.split("=", 1) for c in pairs)
-    unknown = set(out) - set(buses)
-    if unknown:
-        raise UserError(f"--channel: the log's buses are {', '.join(buses) or 'none'}; "
-                        f"unknown {', '.join(sorted(unknown))}")
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     from gateway.cli import UserError
     from gateway.replay import parse_can_ids
@@ -156,26 +137,15 @@ def _stop_on_sigterm():
 def _live_can(args: argparse.Namespace, can_ids) -> int:
     import contextlib
 
-    import can
-
-    from gateway.cli import UserError
+    from gateway.commands.gateway import channels, open_can
     from gateway.replay import play_can, read_context, readable
 
     stop, restore = _stop_on_sigterm()
     try:
         with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
             ctx = read_context(src)
-            chans = _bus_channels(args.channel, ctx.buses)
-            fd = args.fd or ctx.fd
-            buses = {}
-            for name, ch in chans.items():
-                kw = {"fd": True} if fd else {}
-                try:
-                    buses[name] = stack.enter_context(can.Bus(
-                        interface=args.interface, channel=ch, ignore_config=True, **kw))
-                except (can.CanError, ImportError, ValueError) as exc:
-                    raise UserError(f"cannot open CAN bus {name} ({args.interface} {ch}): "
-                                    f"{exc}") from None
+            chans = channels(args.channel, list(ctx.buses), every=False)
+            buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd)
             stats = play_can(src, buses, rate=args.rate, loop=args.loop, start_s=args.start,
                              duration_s=args.duration, can_ids=can_ids,
                              topics=args.topic or None, stop=stop, progress=not args.quiet,

@@ -161,27 +161,29 @@ def subscribed(pub_s, sub_s) -> None:
         probe.undeclare()
 
 
-def test_epochs_flushed_at_close_are_still_published(sessions):
-    """Epochs still waiting for inputs when the service closes are computed by the final flush
-    (flagged, never good) and must reach subscribers, not vanish."""
+def arm0_ft_then_close(sessions, keyexpr: str, want, *, before_close=None, **service_kw) -> list:
+    """A gateway of the paper robot receives three F/T samples of arm0 only (their epoch never
+    completes), drains, ``before_close(collected)``, closes; what a subscriber to ``keyexpr``
+    got once ``want(collected)`` holds."""
     pub_s, sub_s = sessions
     robot = robot_description.load("paper_robot")
     wm = wire.WireMap.from_robot(robot)
-    prefix = f"bsc-flush-{uuid.uuid4().hex}"
-    col = Collector(lambda got: sum(isinstance(o, JointEfforts) for _, o in got) >= len(robot.arms))
-    sub = sub_s.declare_subscriber(keys.efforts("paper_robot"), col)
+    prefix = f"bsc-close-{uuid.uuid4().hex}"
+    col = Collector(want)
+    sub = sub_s.declare_subscriber(keyexpr, col)
     buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), receive_own_messages=False,
                         ignore_config=True) for n in wm.buses}
     tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
                  ignore_config=True)
     try:
         subscribed(pub_s, sub_s)
-        gw = GatewayService(robot, buses, pub_s).start()
-        for c in range(3):               # arm0's F/T only: its epoch never completes
+        gw = GatewayService(robot, buses, pub_s, **service_kw).start()
+        for c in range(3):
             for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
                 tx.send(m)
         assert gw.drain(10.0)
-        assert not col.got                # nothing computed yet: the epochs wait for their inputs
+        if before_close is not None:
+            before_close(col.got)
         gw.close()
         assert col.done.wait(10.0), col.got
     finally:
@@ -189,34 +191,58 @@ def test_epochs_flushed_at_close_are_still_published(sessions):
         for b in buses.values():
             b.shutdown()
         sub.undeclare()
-    efforts = [o for _, o in col.got if isinstance(o, JointEfforts)]
+    return col.got
+
+
+def _nothing_yet(got) -> None:
+    assert not got                        # nothing computed yet: the epoch waits for its inputs
+
+
+def test_epochs_flushed_at_close_are_still_published(sessions):
+    """Epochs still waiting for inputs when the service closes are computed by the final flush
+    (flagged, never good) and must reach subscribers, not vanish."""
+    n_arms = len(robot_description.load("paper_robot").arms)
+    got = arm0_ft_then_close(sessions, keys.efforts("paper_robot"),
+                             lambda got: sum(isinstance(o, JointEfforts) for _, o in got) >= n_arms,
+                             before_close=_nothing_yet)
+    efforts = [o for _, o in got if isinstance(o, JointEfforts)]
     assert all(not e.good and any(f.startswith("missing:") for f in e.flags) for e in efforts)
 
 
 def test_no_samples_publishes_efforts_but_no_sensor_samples(sessions):
     """``bsc gateway --no-samples``: decoded samples stay inside the gateway, efforts go out."""
-    pub_s, sub_s = sessions
-    robot = robot_description.load("paper_robot")
-    wm = wire.WireMap.from_robot(robot)
-    prefix = f"bsc-nosamples-{uuid.uuid4().hex}"
-    col = Collector(lambda got: any(isinstance(o, JointEfforts) for _, o in got))
-    sub = sub_s.declare_subscriber(keys.everything("paper_robot"), col)
-    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), receive_own_messages=False,
-                        ignore_config=True) for n in wm.buses}
-    tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
-                 ignore_config=True)
-    try:
-        subscribed(pub_s, sub_s)
-        gw = GatewayService(robot, buses, pub_s, publish_samples=False).start()
-        for c in range(3):
-            for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
-                tx.send(m)
-        assert gw.drain(10.0)
-        gw.close()
-        assert col.done.wait(10.0)
-    finally:
-        tx.shutdown()
-        for b in buses.values():
-            b.shutdown()
-        sub.undeclare()
-    assert not [k for k, _ in col.got if "/sensors/" in k]
+    got = arm0_ft_then_close(sessions, keys.everything("paper_robot"),
+                             lambda got: any(isinstance(o, JointEfforts) for _, o in got), publish_samples=False)
+    assert not [k for k, _ in got if "/sensors/" in k]
+
+
+def test_open_can_gives_each_bus_its_udp_port_by_robot_order(monkeypatch):
+    """bsc gateway, record and replay open buses the same way: on udp_multicast a bus's port is
+    that of its place in the robot's bus list (as the firmware sends), even when only some are
+    opened (a replay of one bus)."""
+    import contextlib
+
+    from gateway.commands.gateway import channels, open_can
+
+    opened = {}
+
+    class FakeBus:
+        def __init__(self, **kw):
+            opened[kw["channel"]] = kw
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(can, "Bus", FakeBus)
+    buses = ["arm0", "arm1", "spacecraft"]
+    chans = channels(["spacecraft=239.74.163.3"], buses, every=False)
+    with contextlib.ExitStack() as stack:
+        open_can(stack, "udp_multicast", chans, buses, fd=True)
+    assert opened == {"239.74.163.3": {"interface": "udp_multicast", "channel": "239.74.163.3",
+                                       "ignore_config": True, "fd": True, "port": wire.udp_port(2)}}
+    from gateway.cli import UserError
+    with pytest.raises(UserError, match="missing arm1, spacecraft"):
+        channels(["arm0=can0"], buses)
