@@ -109,15 +109,6 @@ class _Tagger(can.Listener):
         self.wake.set()
 
 
-def _congestion(key: str):
-    """Efforts, alerts and health are BLOCK: zenoh's default (DROP) loses them silently when its
-    send queue is full (seen: up to 3 % of efforts in lockstep runs); blocking instead slows the
-    worker, so the frame backlog fills and the drop is counted there. Raw samples keep DROP."""
-    import zenoh
-
-    return zenoh.CongestionControl.DROP if "/sensors/" in key else zenoh.CongestionControl.BLOCK
-
-
 class GatewayService:
     def __init__(self, robot, buses: Mapping[str, can.BusABC], session, *, fd: bool = False,
                  health_period_s: float = 0.5, stale_periods: int = 10, estimate: bool = True,
@@ -416,9 +407,9 @@ class GatewayService:
             return
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self._publishers[key] = self.session.declare_publisher(key, congestion_control=_congestion(key))
+            pub = self._publishers[key] = codec.declare_publisher(self.session, key)
         try:
-            pub.put(codec.encode(obj), attachment=str(time.time_ns()).encode())
+            codec.put(pub, codec.encode(obj))
             self.published += 1
         except Exception as exc:  # noqa: BLE001 - a closing session must not kill the worker
             self.publish_errors += 1

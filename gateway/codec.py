@@ -5,11 +5,18 @@ arrays, floats are written with Python's shortest round-tripping repr, so ``deco
 x`` for every sample, health, effort and alert dataclass. Decoding is safe: ``json.loads`` only, the type is
 looked up in a fixed table, every field is checked for presence and type; nothing is evaluated
 or unpickled. Non-finite floats (never produced by the drivers) are refused.
+
+Publishing (:func:`declare_publisher`, :func:`put`): every bsc publisher sends the publish time as
+the zenoh attachment ``publish_ns`` (decimal ASCII ns), so payloads of the same sample are equal
+bytes whenever they are sent. Efforts, alerts and health go with congestion control BLOCK
+(zenoh's default, DROP, loses them silently when its send queue is full: a slow consumer must
+slow the producer, whose own queue counts what it drops); raw samples keep DROP.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import time
 import types
 import typing
 
@@ -22,6 +29,19 @@ ENCODING = "application/json"
 TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
                                                    ThrusterCommand, ValveCommand, DeviceHealth, BusHealth, JointEfforts,
                                                    ThrusterEffort, Alert)}
+
+
+def declare_publisher(session, key: str):
+    """A zenoh publisher for ``key`` with bsc's congestion policy (module docstring)."""
+    import zenoh
+
+    cc = zenoh.CongestionControl.DROP if "/sensors/" in key else zenoh.CongestionControl.BLOCK
+    return session.declare_publisher(key, congestion_control=cc)
+
+
+def put(publisher, payload: bytes) -> None:
+    """Send an encoded payload with the ``publish_ns`` attachment."""
+    publisher.put(payload, attachment=str(time.time_ns()).encode())
 
 
 class CodecError(ValueError):

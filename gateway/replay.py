@@ -943,7 +943,7 @@ def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop
                     yield topic, m.log_time, payload
 
             def send(key: str, payload: bytes) -> None:
-                pubs[key].put(payload, attachment=str(time.time_ns()).encode())
+                codec.put(pubs[key], payload)
                 stats.sent[key] += 1
 
             _play(ctx, items, send, stats, rate=rate, loop=loop, stop=stop, progress=progress,

@@ -238,10 +238,10 @@ class LiveEstimator:
         lim = t - self.half
         grid = self._grid
         for s in self._pending:
-            if grid(s.t_ns) > lim:
+            g = grid(s.t_ns)
+            if g > lim:
                 keep.append(s)
-            elif isinstance(s, ImuSample):
-                g = grid(s.t_ns)                 # the IMU sample ends the steps of its grid epoch
+            elif isinstance(s, ImuSample):             # it ends the filter steps of its grid epoch
                 self.kf.imu(g, np.asarray(s.accel_m_s2), np.asarray(s.rate_rad_s))
                 self._gyro_t = g
                 self._note(s.saturated, s.status & wire.IMU_FAULT, "imu")

@@ -113,8 +113,8 @@ class MonitorService:
         key = keys.alerts(alert.robot)
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key)
-        pub.put(codec.encode(alert), attachment=str(time.time_ns()).encode())
+            pub = self._pubs[key] = codec.declare_publisher(self.session, key)
+        codec.put(pub, codec.encode(alert))
 
     # --- processing ---------------------------------------------------------------------------------
     def process_pending(self) -> int:

@@ -68,3 +68,19 @@ def test_keys():
     assert keys.alerts("r") == "bsc/r/alerts"
     with pytest.raises(ValueError):
         keys.wrench("r", "a*")
+
+
+def test_publishers_block_for_efforts_alerts_health_and_drop_for_samples():
+    import zenoh
+
+    from gateway import codec
+
+    class Session:
+        def declare_publisher(self, key, **kw):
+            return kw["congestion_control"]
+
+    s = Session()
+    for key in ("bsc/r/efforts/thrusters", "bsc/r/alerts", "bsc/r/health/bus/arm0"):
+        assert codec.declare_publisher(s, key) == zenoh.CongestionControl.BLOCK, key
+    for key in ("bsc/r/sensors/imu", "bsc/r/sensors/commands/valves"):
+        assert codec.declare_publisher(s, key) == zenoh.CongestionControl.DROP, key
