@@ -82,8 +82,6 @@ def open_can(stack, interface: str, chans: dict[str, str], buses: list[str], *, 
 
 def run(args: argparse.Namespace) -> int:
     import contextlib
-    import signal
-    import threading
 
     import zenoh
 
@@ -99,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
     layout = ThrusterLayout.load(args.thrusters)
     wm = WireMap.from_robot(robot)
     chans = channels(args.channel, list(wm.buses))
-    stop = threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from gateway.commands import stop_on_sigterm
+
+    stop, _ = stop_on_sigterm()           # the process ends with the command
     with contextlib.ExitStack() as stack:
         buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd)
         session = stack.enter_context(zenoh.open(config_from_args(args)))

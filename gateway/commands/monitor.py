@@ -30,8 +30,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import logging
-    import signal
-    import threading
     import time
 
     import zenoh
@@ -50,9 +48,9 @@ def run(args: argparse.Namespace) -> int:
     tty = sys.stdout.isatty()
     logging.basicConfig(level=logging.WARNING if live and tty else logging.INFO, format="%(message)s",
                         stream=sys.stderr)
-    stop = threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from gateway.commands import stop_on_sigterm
+
+    stop, _ = stop_on_sigterm()           # the process ends with the command
     last = [0.0]
 
     def frame(svc: MonitorService, force: bool = False) -> None:

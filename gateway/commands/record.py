@@ -210,7 +210,6 @@ def _positive(name: str, value: float | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import contextlib
-    import signal
     from pathlib import Path
 
     import robot_description
@@ -249,10 +248,9 @@ def run(args: argparse.Namespace) -> int:
     except FileExistsError:
         raise UserError(f"{out} exists (use --force to replace it)") from None
 
-    stop = threading.Event()
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from gateway.commands import stop_on_sigterm
+
+    stop, restore = stop_on_sigterm()
     recording = None
     try:
         with contextlib.ExitStack() as stack:
@@ -289,8 +287,7 @@ def run(args: argparse.Namespace) -> int:
                 pass
             recording.close()
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        restore()
         if recording is not None:
             for line in recording.summary():
                 print(f"bsc record: {line}", flush=True)

@@ -118,29 +118,14 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
     return 0
 
 
-def _stop_on_sigterm():
-    import signal
-    import threading
-
-    stop = threading.Event()
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
-
-    def restore() -> None:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-
-    return stop, restore
-
-
 def _live_can(args: argparse.Namespace, can_ids) -> int:
     import contextlib
 
+    from gateway.commands import stop_on_sigterm
     from gateway.commands.gateway import channels, open_can
     from gateway.replay import play_can, read_context, readable
 
-    stop, restore = _stop_on_sigterm()
+    stop, restore = stop_on_sigterm()
     try:
         with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
             ctx = read_context(src)
@@ -159,10 +144,11 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
 def _live_zenoh(args: argparse.Namespace) -> int:
     import zenoh
 
+    from gateway.commands import stop_on_sigterm
     from gateway.replay import play_zenoh
     from gateway.zenoh_config import config_from_args
 
-    stop, restore = _stop_on_sigterm()
+    stop, restore = stop_on_sigterm()
     try:
         with zenoh.open(config_from_args(args)) as session:
             stats = play_zenoh(args.file, session, rate=args.rate, loop=args.loop,
