@@ -289,21 +289,25 @@ class LiveEstimator:
         arm_flags: dict[str, set] | None = None
         row: list[float] = []
         efts = e.ft
+        ft_trusted = True                 # every F/T sample present, none saturated or faulty
         for a in self.arms:
             w = efts.get(a)
             if w is None:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"missing:{a}")
                 row += (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                ft_trusted = False
                 continue
             row += w.force_n
             row += w.torque_nm
             if w.saturated:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"saturated:{a}")
+                ft_trusted = False
             if w.status & wire.FT_FAULT:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"fault:{a}")
+                ft_trusted = False
         ft = np.array(row, dtype=float).reshape(self._n_arms, 6)
         ejs = e.joints
         q, dq = self._q, self._dq
@@ -330,9 +334,7 @@ class LiveEstimator:
         # the filter learns only from whole, trusted steps: a step without every arm's F/T
         # sample or without the valve command (or with a saturated or faulty F/T sample) is left
         # out, and the IMU samples whose interval it falls in are not applied (kf.imu)
-        # (an arm flag without "/" is about its F/T sensor: missing, saturated or fault)
-        if e.valves is not None and (arm_flags is None or not any(
-                "/" not in f for flags in arm_flags.values() for f in flags)):
+        if ft_trusted and e.valves is not None:
             kf.push_epoch(t, arm_w, valves)
         # base motion (element-wise work on Python floats: the same double operations in the
         # same order as the numpy form (thr + arm) / m, (thr + arm) - w x (I w))
