@@ -48,17 +48,22 @@ class CodecError(ValueError):
     """A payload that is not a valid encoded sample."""
 
 
+_FIELDS: dict[type, tuple[str, ...]] = {t: tuple(f.name for f in dataclasses.fields(t)) for t in TYPES.values()}
+_ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))   # json.dumps(obj, same options)
+
+
 def encode(sample) -> bytes:
-    name = type(sample).__name__
-    if TYPES.get(name) is not type(sample):
-        raise TypeError(f"cannot encode {name}")
-    obj = {"type": name, "v": VERSION}
-    for f in dataclasses.fields(sample):
-        obj[f.name] = getattr(sample, f.name)
+    cls = type(sample)
+    names = _FIELDS.get(cls)
+    if names is None:
+        raise TypeError(f"cannot encode {cls.__name__}")
+    obj = {"type": cls.__name__, "v": VERSION}
+    for n in names:
+        obj[n] = getattr(sample, n)
     try:
-        return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+        return _ENCODER.encode(obj).encode()
     except ValueError as exc:
-        raise CodecError(f"{name}: {exc}") from None
+        raise CodecError(f"{cls.__name__}: {exc}") from None
 
 
 _HINTS: dict[type, dict[str, object]] = {t: typing.get_type_hints(t) for t in TYPES.values()}

@@ -14,7 +14,9 @@ Synchronisation policy (docs/estimator.md, "Live"):
 - Slower streams are applied to the first epoch that is at least half a period later than
   their timestamp: IMU samples (they update the thruster filter and the base rate), torque and
   thruster commands (the "commanded" fields). Their maximum age: ``stale_periods`` of their own
-  period; older means ``stale:<device>``.
+  period; older means ``stale:<device>``. What arrived by the time an epoch is computed is
+  applied right after its efforts are out (the filter's IMU update is the longest step of an
+  epoch, and only the next epoch needs it), the rest when the next epoch is computed.
 - A missing joint state holds the previous one (``stale:<arm>/<joint>``, that arm's efforts not
   good); a missing F/T sample or valve command makes all the epoch's efforts not good
   (``missing:<device>``: the base motion needs every arm's reaction). Saturated or
@@ -233,9 +235,9 @@ class LiveEstimator:
             self._compute(e)
 
     # -- one epoch ---------------------------------------------------------------------------
-    def _apply_pending(self, t: int) -> None:
+    def _apply_pending(self, lim: int) -> None:
+        """Apply the slower-stream samples whose grid time is at most ``lim``, in arrival order."""
         keep = []
-        lim = t - self.half
         grid = self._grid
         for s in self._pending:
             g = grid(s.t_ns)
@@ -276,10 +278,10 @@ class LiveEstimator:
         if e.first is not None and self._complete(e):      # the grid follows the bursts (drift)
             self._center += ((e.first + e.last) // 2 - t) // PHASE_TRACK
         self.epochs += 1
-        self._faults = set()
         if self._pending:
-            self._apply_pending(t)
-        common: set[str] = set(self._faults)
+            self._apply_pending(t - self.half)
+        common: set[str] = self._faults          # noted by the slower streams applied since the last epoch
+        self._faults = set()
         if self._gyro_t is None:
             common.add("warmup")
         elif t - self._gyro_t > self._stale_imu_ns:
@@ -375,3 +377,5 @@ class LiveEstimator:
             tc.moment_nm if tc else (0.0, 0.0, 0.0),
             tc.t_ns if tc else 0, tc.valves if tc else 0,
             good, flags))
+        if self._pending:                 # off the latency path: the next epoch needs these first
+            self._apply_pending(t)

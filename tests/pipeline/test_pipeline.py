@@ -82,6 +82,35 @@ def test_result_does_not_depend_on_how_buses_interleave():
     assert len(a) == 300 * 3
 
 
+def test_the_imu_update_runs_after_the_epochs_efforts_are_out():
+    """The thruster filter's IMU update (the longest step of an epoch) is off the latency path:
+    an IMU sample stamped in epoch t updates the filter after epoch t's efforts are emitted and
+    before epoch t + 1 is computed, whether it arrived before or after epoch t completed."""
+    robot, frames = _frames()
+    log = []
+    pl = Pipeline(robot, emit=lambda k, o: log.append(("effort", o.t_ns)) if isinstance(o, ThrusterEffort) else None)
+    kf = pl.estimator.kf
+    imu = kf.imu
+
+    def logged_imu(t_ns, *a):
+        log.append(("imu", t_ns))
+        return imu(t_ns, *a)
+
+    kf.imu = logged_imu
+    for bus, msg in frames:
+        log.append(("frame", None))
+        pl.feed(bus, msg)
+    pl.flush()
+    updates = [(i, t) for i, (what, t) in enumerate(log) if what == "imu"]
+    assert len(updates) >= 140
+    for i, t in updates:
+        k = i - 1
+        while log[k][0] == "imu":                          # (two at once after a late sample)
+            k -= 1
+        # in the same frame's processing as its epoch's efforts, right after them
+        assert log[k] == ("effort", t), log[k - 2:i + 1]
+
+
 @pytest.mark.parametrize("lag_us", [0, 300])
 def test_frames_spread_at_real_can_timing_give_the_same_estimates(lag_us):
     """On a real bus a step's frames do not arrive together: the frames queued for one step go
