@@ -15,9 +15,11 @@ Processes, all on this host:
   live instead (``run_on_buses(realtime=True)``). The sender stands for the robot's hardware, so it
   runs at real-time priority when allowed (it sleeps most of the time).
 - **gateway**: :class:`gateway.bridge.GatewayService` built as ``bsc gateway`` builds it (python-can
-  buses, one notifier thread per bus, one worker running drivers + estimator, a zenoh peer session
-  listening on a loopback port), with thin timing wrappers around each bus's ``recv``,
-  ``pipeline.feed`` and ``pipeline.emit`` (``--bare``: only the ``emit`` one).
+  buses; the direct receive mode, where the one worker thread polls the buses' sockets and runs
+  drivers + estimator, or ``--receive threads``: one notifier thread per bus feeding the worker; a
+  zenoh peer session listening on a loopback port; the heap frozen after start-up), with thin
+  timing wrappers around each bus's ``recv``, ``pipeline.feed`` and ``pipeline.emit`` (``--bare``:
+  only the ``emit`` one).
   ``--topology split`` measures the alternative: the gateway process runs the drivers only
   (``estimate=False``, samples published on zenoh) and an **estimator** process subscribes to the
   samples, runs :class:`gateway.estimator.live.LiveEstimator` in its zenoh callback and publishes
@@ -38,8 +40,8 @@ the frames go over loopback UDP unicast instead (``--transport loopback``: a sma
 here with the same msgpack datagrams and kernel receive stamps as ``udp_multicast``).
 
 Reported: the distribution (p50, p90, p99, p99.9, max, count), the stages of the completing
-frame's path (arrival -> notifier thread has it -> worker dequeues it -> effort emitted -> ``put``
-returned -> subscriber), every frame's queue wait and worker time, the CPU of every thread group
+frame's path (arrival -> a gateway thread has received it -> the pipeline starts on it -> effort
+emitted -> ``put`` returned -> subscriber), every frame's queue wait and worker time, the CPU of every thread group
 of every process over the sending window, GC pauses and health ticks in the gateway, the
 gateway's frame accounting (drops when its bounded queue overflows), the load average and the
 host's CPU use, and the verdict. ``--slowdown K`` sends K times slower than real time: a
@@ -111,6 +113,9 @@ def _loopback_bus_class():
                     sec, nsec = struct.unpack("@ll", cdata[:struct.calcsize("@ll")])
                     ts = sec + nsec * 1e-9
             return unpack_message(data, replace={"timestamp": ts}, check=True), False
+
+        def fileno(self) -> int:                          # pollable, as udp_multicast is
+            return self.sock.fileno()
 
         def send(self, msg, timeout=None):
             raise NotImplementedError("receive side only")
@@ -294,6 +299,7 @@ def role_gateway(a) -> int:
 
     from drivers.wire import WireMap
     from gateway.bridge import GatewayService
+    from gateway.commands.gateway import freeze_heap
     from gateway.zenoh_config import make_config
 
     if a.switch_interval:
@@ -303,7 +309,7 @@ def role_gateway(a) -> int:
     robot, layout = _robot()
     tn = time.time_ns
     wakes: dict[int, int] = {}
-    frames: list[tuple[int, int, int, int]] = []         # arrival, notifier has it, dequeued, fed
+    frames: list[tuple[int, int, int, int]] = []         # arrival, received, pipeline starts, fed
     efforts: list[tuple] = []                            # key, t_ns, then the stamps named below
     cur = [0, 0, 0]
     pauses = _Pauses()
@@ -314,7 +320,7 @@ def role_gateway(a) -> int:
         conf = make_config(connect=[a.endpoint]) if a.router else make_config(listen=[a.endpoint])
         session = stack.enter_context(zenoh.open(conf))
         gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate,
-                            publish_samples=not a.no_samples)
+                            publish_samples=not a.no_samples, receive=a.receive)
         pipe = gw.pipeline
         emit0 = pipe.emit
         if a.bare:
@@ -328,7 +334,8 @@ def role_gateway(a) -> int:
                 else:
                     emit0(key, obj)
         else:
-            names = ["frame arrival", "notifier thread has it", "worker dequeues it", "effort emitted", "put returned"]
+            names = ["frame arrival", "received by a gateway thread", "pipeline starts on it", "effort emitted",
+                     "put returned"]
 
             def timed_recv(bus):
                 orig = bus.recv
@@ -371,6 +378,7 @@ def role_gateway(a) -> int:
         gw.on_tick = on_tick
         stop = threading.Event()
         drain: dict = {}
+        freeze_heap()                                     # as bsc gateway does before it runs
         with gw:
             nots = getattr(gw, "_notifiers", [])
             nots = [n[0] if isinstance(n, tuple) else n for n in (nots.values() if isinstance(nots, dict) else nots)]
@@ -393,7 +401,8 @@ def role_gateway(a) -> int:
             dump = {"frames": frames, "efforts": efforts, "stamp_names": names, "stats": dict(pipe.stats),
                     "published": gw.published, "publish_errors": gw.publish_errors,
                     "service": dict(getattr(gw, "stats", {}) or {}), "drain": drain,
-                    "pauses": pauses.items + ticks, "switch_interval_s": sys.getswitchinterval()}
+                    "pauses": pauses.items + ticks, "switch_interval_s": sys.getswitchinterval(),
+                    "receive": gw.receive}
         Path(a.out).write_bytes(pickle.dumps(dump))
     _say({"done": True})
     return 0
@@ -609,7 +618,7 @@ def _host_cpu():
 def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "efforts", transport: str = "auto",
             topology: str = "one", router: bool = False, source: str = "pregen", bare: bool = False,
             switch_interval: float = 0.0, nice: int = 0, slowdown: float = 1.0, samples: bool = True,
-            progress=None) -> dict:
+            receive: str = "auto", progress=None) -> dict:
     """Run the processes for ``WARMUP_S + seconds`` of frames; return the raw records and context."""
     say = progress or (lambda s: None)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1",
@@ -640,7 +649,7 @@ def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "e
                 start("router", "--endpoint", ep).read()
             gw = start("gateway", "--endpoint", ep, "--transport", transport, "--out", str(tmp / "gateway.pickle"),
                        *["--bare"] * bare, *["--router"] * router, *["--no-estimate"] * split,
-                       *["--no-samples"] * (not samples), *si)
+                       *["--no-samples"] * (not samples), "--receive", receive, *si)
             ready = gw.read()
             if split:
                 est = start("estimator", "--endpoint", ep, "--listen", ep2, "--out", str(tmp / "estimator.pickle"), *si)
@@ -689,6 +698,7 @@ def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "e
             "config": {"seconds": seconds, "warmup_s": WARMUP_S, "pacing": pacing, "subscribe": subscribe,
                        "transport": transport, "topology": topology, "router": router, "source": source,
                        "bare": bare, "switch_interval_s": dumps["gateway"]["switch_interval_s"],
+                       "receive": dumps["gateway"].get("receive"),
                        "slowdown": slowdown, "gateway_nice": nice, "zenoh": ep, "cpus": os.cpu_count(),
                        "sender_priority": sender_ready.get("priority"), "tree": _tree()},
             "load": {"before": [round(x, 2) for x in load0], "after": [round(x, 2) for x in load1],
@@ -754,7 +764,7 @@ def analyse(raw: dict) -> dict:
         span = (t_end - t_start) * 1e-9
         res["frames"] = {
             "count": int(len(fr)), "rate_per_s": round(len(fr) / span),
-            "arrival -> notifier us": _pct((f_wake - f_arr) / 1e3, (50, 99)),
+            "arrival -> received us": _pct((f_wake - f_arr) / 1e3, (50, 99)),
             "queue wait us": _pct((f_deq - f_wake) / 1e3, (50, 99)),
             "worker wall time per frame us": _pct((f_done - f_deq) / 1e3, (50, 99)),
             # wall time the worker spent on the frames of one second (> 1: it cannot keep up)
@@ -810,7 +820,8 @@ def report(res: dict) -> str:
     c, ld, p = res["config"], res["load"], res["end_to_end_us"]
     out = [f"gateway end-to-end latency: {c['topology']} process{'es' if c['topology'] == 'split' else ''}, "
            f"{c['transport']} CAN, {c['pacing']} pacing, source {c['source']}, subscriber on {c['subscribe']}"
-           f"{', via a zenoh router' if c['router'] else ''}; {c['seconds']:g} s measured after {c['warmup_s']:g} s "
+           f"{', via a zenoh router' if c['router'] else ''}, receive {c.get('receive')}; "
+           f"{c['seconds']:g} s measured after {c['warmup_s']:g} s "
            f"warm-up; {c['cpus']} cores",
            f"load average before {ld['before']}, after {ld['after']}; host CPU busy {100 * ld['host_cpu_busy']:.0f} %",
            f"tree: commit {c['tree']['commit']}" + (f", modified {', '.join(c['tree']['modified'])}"
@@ -824,8 +835,8 @@ def report(res: dict) -> str:
         out.append(f"  {k:<70} {v['p50']:8.0f} {v['p90']:8.0f} {v['p99']:8.0f} {v['max']:9.0f}")
     fr = res.get("frames")
     if fr:
-        out += ["", f"every frame ({fr['rate_per_s']} frames/s): arrival -> notifier p50 "
-                f"{fr['arrival -> notifier us']['p50']:.0f} p99 {fr['arrival -> notifier us']['p99']:.0f} us; "
+        out += ["", f"every frame ({fr['rate_per_s']} frames/s): arrival -> received p50 "
+                f"{fr['arrival -> received us']['p50']:.0f} p99 {fr['arrival -> received us']['p99']:.0f} us; "
                 f"queue wait p50 {fr['queue wait us']['p50']:.0f} p99 {fr['queue wait us']['p99']:.0f} us; "
                 f"worker wall time per frame p50 {fr['worker wall time per frame us']['p50']:.0f} mean "
                 f"{fr['worker wall time per frame us']['mean']:.0f} us; the worker spent "
@@ -880,9 +891,9 @@ def figures(quick: bool = False) -> list[dict]:
         {"name": "end-to-end latency max", "value": p["max"], "unit": "us", "target": None, "ok": None},
     ]
     st = res["stages_us"]
-    compute = "worker dequeues it -> effort emitted"
+    compute = "pipeline starts on it -> effort emitted"
     if compute in st:
-        rows.append({"name": "completing frame dequeued -> efforts emitted p50 (drivers + estimator epoch)",
+        rows.append({"name": "completing frame into the pipeline -> efforts emitted p50 (drivers + estimator epoch)",
                      "value": st[compute]["p50"], "unit": "us", "target": None, "ok": None})
     hop = "effort emitted -> subscriber callback (codec, zenoh hop)"
     rows.append({"name": "effort emitted -> subscriber callback p50 (zenoh hop)", "value": st[hop]["p50"],
@@ -911,6 +922,8 @@ def main(argv=None) -> int:
                     help="pre-generated frames (default) or the simulator running live")
     ap.add_argument("--router", action="store_true", help="gateway and subscriber meet at a zenoh router process")
     ap.add_argument("--bare", action="store_true", help="only the emit wrapper in the gateway (no per-frame stages)")
+    ap.add_argument("--receive", choices=("auto", "threads"), default="auto",
+                    help="the gateway's receive mode (GatewayService receive=; auto: direct on these buses)")
     ap.add_argument("--no-samples", action="store_true",
                     help="the gateway publishes efforts and health only, not every decoded sample "
                          "(bsc gateway --no-samples)")
@@ -937,7 +950,7 @@ def main(argv=None) -> int:
     res = analyse(measure(a.seconds, pacing=a.pacing, subscribe=a.subscribe, transport=a.transport,
                           topology=a.topology, router=a.router, source=a.source, bare=a.bare,
                           switch_interval=a.switch_interval, nice=a.nice, slowdown=a.slowdown,
-                          samples=not a.no_samples, progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
+                          samples=not a.no_samples, receive=a.receive, progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
     print(json.dumps(res, indent=1) if a.json else report(res))
     return 0
 

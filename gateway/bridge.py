@@ -8,25 +8,36 @@ publishers it creates. Lifecycle::
         gw.run(stop_event)                                  # health every health_period_s
     # close(): notifiers stopped, worker drained, publishers undeclared (harmless twice)
 
-Threads: python-can runs one notifier thread per bus; each only tags the frame with its bus and
-puts it on one FIFO queue. ONE worker thread takes frames from that queue, in that order, through
+Threads. ONE worker thread takes the frames, in arrival order per bus, through
 :class:`gateway.pipeline.Pipeline` (drivers, then the estimator) and publishes what comes out:
-decoded samples, efforts, health. The recorder (``record=``) gets the raw frames in exactly the
-order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte for byte.
+efforts and health at once, decoded samples when the worker has no frame waiting (so a step's
+efforts never wait behind its samples' publishing). The recorder (``record=``) gets the raw
+frames in exactly the order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte
+for byte. How frames reach the worker (``receive=``):
 
-The queue is bounded: at most ``max_backlog`` frames (default :data:`DEFAULT_MAX_BACKLOG` = 10 000,
-0.75 s of the paper robot's nominal 13 400 frames/s, about 0.5 s of work for the worker at
-~50 us per frame; ~180 bytes per waiting frame). A notifier thread never blocks: when the backlog reaches ``max_backlog`` the service sheds load,
-dropping every arriving frame until the backlog is back to ``resume_backlog`` (90 % of it), so
-what gets through comes in contiguous runs that still make complete estimator epochs. Every
-frame is counted per bus: ``received = processed + dropped + in the queue`` (exactly; after
-:meth:`drain` nothing is in the queue). Drops show in :attr:`stats` and in each bus's health as
+- ``"direct"`` (the default when every bus has a pollable ``fileno()``: SocketCAN,
+  ``udp_multicast``): the worker itself waits on all the buses' sockets with ``poll`` and drains
+  each ready one with ``recv(0)`` into its own FIFO backlog. One Python thread per frame path: no
+  hand-off between threads and no wait for the GIL (docs/latency.md).
+- ``"threads"`` (the default otherwise, e.g. python-can ``virtual``): python-can runs one notifier
+  thread per bus; each only tags the frame with its bus and puts it on one FIFO queue that the
+  worker reads.
+
+The backlog is bounded either way: at most ``max_backlog`` frames (default
+:data:`DEFAULT_MAX_BACKLOG` = 10 000, 0.75 s of the paper robot's nominal 13 400 frames/s; ~180
+bytes per waiting frame). Receiving never blocks on it: when the backlog reaches ``max_backlog``
+the service sheds load, dropping every arriving frame until the backlog is back to
+``resume_backlog`` (90 % of it), so what gets through comes in contiguous runs that still make
+complete estimator epochs. In ``direct`` mode the worker drains the sockets between every
+:data:`DIRECT_BATCH` frames it processes, so the kernel's socket buffers never fill first. Every
+frame is counted per bus: ``received = processed + dropped + in the backlog`` (exactly; after
+:meth:`drain` nothing is in the backlog). Drops show in :attr:`stats` and in each bus's health as
 the rejection reason ``overflow``; the drivers see them as lost samples.
 
 A bus whose ``recv`` raises (an adapter unplugged, a SocketCAN link down, a bus shut down under
 the gateway) does not stop the others: the error is logged once per outage and counted
-(``rx_error`` in the bus's health, :attr:`stats`), the notifier retries with a backoff (10 ms
-doubling to ``retry_s``), and the bus is up again at its next frame. If ``reopen(bus_name) ->
+(``rx_error`` in the bus's health, :attr:`stats`), the bus is retried with a backoff (10 ms
+doubling to ``retry_s``), and it is up again at its next frame. If ``reopen(bus_name) ->
 can.BusABC`` is given, a bus still failing after ``retry_s`` is replaced by a new one from
 ``reopen`` (retried every ``retry_s`` until it succeeds); :meth:`replace_bus` does the same on
 request. The service shuts down the buses it got from ``reopen``, never the caller's.
@@ -36,10 +47,13 @@ a replay are identical to the live ones.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import logging
+import os
 import queue
+import select
 import threading
 import time
 from typing import Callable, Mapping
@@ -57,6 +71,21 @@ DEFAULT_MAX_BACKLOG = 10_000         # frames waiting for the worker (all buses 
 RESUME_FRACTION = 0.9                # after an overflow, accept frames again below this fill
 FIRST_BACKOFF_S = 0.01               # first wait after a failed recv; doubles up to retry_s
 OVERFLOW_LOG_EVERY_S = 10.0
+DIRECT_BATCH = 32                    # direct mode: frames processed between two drains of the sockets
+DRAIN_MAX = 16                       # direct mode: frames taken from one socket before the next one's turn
+                                     # (a few steps: the buses stay interleaved close to arrival order)
+IDLE_POLL_S = 0.1                    # direct mode: longest wait in poll (stop, retries, requests)
+QUIET_S = 0.0002                     # direct mode: no frame for this long -> publish the held samples
+SAMPLES_HELD_MAX = 512               # decoded samples held for publishing while frames are waiting
+RECEIVE_MODES = ("auto", "direct", "threads")
+
+
+def pollable(bus) -> bool:
+    """Whether ``bus`` has a file descriptor that ``poll`` can wait on (SocketCAN, udp_multicast)."""
+    try:
+        return int(bus.fileno()) >= 0
+    except Exception:  # noqa: BLE001 - NotImplementedError, a closed socket, ...
+        return False
 
 
 class GatewayError(Exception):
@@ -114,7 +143,7 @@ class GatewayService:
                  health_period_s: float = 0.5, stale_periods: int = 10, estimate: bool = True,
                  model_robot=None, layout=None, record=None, publish_samples: bool = True,
                  max_backlog: int = DEFAULT_MAX_BACKLOG, reopen: Callable[[str], can.BusABC] | None = None,
-                 retry_s: float = 0.5):
+                 retry_s: float = 0.5, receive: str = "auto"):
         if isinstance(robot, wire.WireMap):                # a wire map names a built-in robot
             import robot_description
 
@@ -127,6 +156,13 @@ class GatewayService:
             raise GatewayError(f"max_backlog must be a positive number of frames, got {max_backlog!r}")
         if not retry_s > 0:
             raise GatewayError(f"retry_s must be > 0, got {retry_s!r}")
+        if receive not in RECEIVE_MODES:
+            raise GatewayError(f"receive must be one of {', '.join(RECEIVE_MODES)}, got {receive!r}")
+        every_pollable = all(pollable(buses[name]) for name in wire_map.buses)
+        if receive == "direct" and not every_pollable:
+            raise GatewayError("receive='direct' needs buses with a pollable fileno() (SocketCAN, udp_multicast): "
+                               + ", ".join(n for n in wire_map.buses if not pollable(buses[n])) + " have none")
+        self.receive = ("direct" if every_pollable else "threads") if receive == "auto" else receive
         self.wire = wire_map
         self.robot = wire_map.robot
         self.buses = dict(buses)
@@ -142,7 +178,11 @@ class GatewayService:
         self.retry_s = float(retry_s)
         self.reopen = reopen
         self.bus_state = {name: BusState(name) for name in self.wire.buses}
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()      # threads mode: frames; direct: requests
+        self._backlog: collections.deque = collections.deque()    # direct mode: the worker's own FIFO
+        self._wake_r = self._wake_w = -1                          # direct mode: wakes the worker's poll
+        self._held: list = []                                     # decoded samples waiting to be published
+        self._efforts_out = False                                 # published something else since
         self._qlock = threading.Lock()           # admission: size check + put + counters, per frame
         self._shedding = False
         self.peak_backlog = 0
@@ -168,11 +208,18 @@ class GatewayService:
         if self._closed:
             raise GatewayError("the gateway service is closed")
         if self._worker is None:
-            self._worker = threading.Thread(target=self._work, name="bsc-gateway-worker", daemon=True)
-            self._worker.start()
-            with self._bus_lock:
-                for name in self.wire.buses:
-                    self._listen(name, self.buses[name])
+            if self.receive == "direct":
+                self._wake_r, self._wake_w = os.pipe()
+                os.set_blocking(self._wake_r, False)
+                os.set_blocking(self._wake_w, False)
+                self._worker = threading.Thread(target=self._work_direct, name="bsc-gateway-worker", daemon=True)
+                self._worker.start()
+            else:
+                self._worker = threading.Thread(target=self._work, name="bsc-gateway-worker", daemon=True)
+                self._worker.start()
+                with self._bus_lock:
+                    for name in self.wire.buses:
+                        self._listen(name, self.buses[name])
             if self.reopen is not None:
                 self._supervisor = threading.Thread(target=self._supervise, name="bsc-gateway-supervisor",
                                                     daemon=True)
@@ -194,8 +241,19 @@ class GatewayService:
     def drain(self, timeout: float = 30.0) -> bool:
         """Wait until every frame received so far went through the pipeline."""
         done = threading.Event()
-        self._queue.put(done)
+        self._request(done)
         return done.wait(timeout)
+
+    def _request(self, item) -> None:
+        """Hand ``item`` to the worker: a frame-queue marker (threads mode) or a request read
+        between two batches of frames (direct mode)."""
+        self._queue.put(item)
+        if self.receive == "direct":
+            self._wake()
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):       # full pipe: a wake is pending anyway; closed: stopped
+            os.write(self._wake_w, b"w")
 
     def close(self) -> None:
         if self._closed:
@@ -210,8 +268,13 @@ class GatewayService:
         if self._supervisor is not None:
             self._supervisor.join(30.0)
         if self._worker is not None:
-            self._queue.put(_STOP)
+            self._request(_STOP)
             self._worker.join(30.0)
+        for fd in (self._wake_r, self._wake_w):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._wake_r = self._wake_w = -1
         with self._bus_lock:
             for bus in self.buses.values():
                 if id(bus) in self._owned:
@@ -241,24 +304,28 @@ class GatewayService:
     def _offer(self, st: BusState, msg: can.Message) -> None:
         """A notifier thread's frame: into the queue, or dropped and counted. Never blocks."""
         with self._qlock:
-            st.received += 1
-            n = self._queue.qsize()
-            if self._shedding:
-                if n > self.resume_backlog:
-                    st.dropped += 1
-                    return
-                self._shedding = False
-            elif n >= self.max_backlog:
-                self._shedding = True
-                self.overflow_episodes += 1
-                st.dropped += 1
-                self._log_overflow()
-                return
-            self._queue.put((st, msg))
-            if n >= self.peak_backlog:
-                self.peak_backlog = n + 1
+            if self._admit(st, self._queue.qsize()):
+                self._queue.put((st, msg))
         if st.down_since is not None:
             self._back_up(st)
+
+    def _admit(self, st: BusState, n: int) -> bool:
+        """Count a frame received on ``st`` while ``n`` frames wait; False: dropped (counted)."""
+        st.received += 1
+        if self._shedding:
+            if n > self.resume_backlog:
+                st.dropped += 1
+                return False
+            self._shedding = False
+        elif n >= self.max_backlog:
+            self._shedding = True
+            self.overflow_episodes += 1
+            st.dropped += 1
+            self._log_overflow()
+            return False
+        if n >= self.peak_backlog:
+            self.peak_backlog = n + 1
+        return True
 
     def _log_overflow(self) -> None:
         now = time.monotonic()
@@ -305,6 +372,11 @@ class GatewayService:
                     st.reopen_failures += 1
                     log.debug("reopen %s: %r", st.name, exc)
                     continue
+                if self.receive == "direct" and not pollable(bus):
+                    st.reopen_failures += 1
+                    log.warning("reopen %s: the new bus has no pollable fileno(); not used", st.name)
+                    self._shutdown(bus)
+                    continue
                 try:
                     self.replace_bus(st.name, bus, _owned=True)
                 except GatewayError:
@@ -317,6 +389,9 @@ class GatewayService:
         this service opened it. The bus counts as up again at its first frame."""
         if name not in self.bus_state:
             raise GatewayError(f"no bus {name!r} (buses: {', '.join(self.bus_state)})")
+        direct = self.receive == "direct"
+        if direct and not pollable(bus):
+            raise GatewayError(f"bus {name}: this service receives directly and needs a pollable fileno()")
         with self._bus_lock:
             if self._closed:
                 raise GatewayError("the gateway service is closed")
@@ -326,17 +401,23 @@ class GatewayService:
                 tagger.stop()
                 notifier.stop()
             prev = self.buses.get(name)
+            retired = None
             if prev is not None and id(prev) in self._owned and prev is not bus:
                 self._owned.discard(id(prev))
-                self._shutdown(prev)
+                retired = prev
             self.buses[name] = bus
             if _owned:
                 self._owned.add(id(bus))
             st = self.bus_state[name]
             st.reopened += 1
             st.backoff_s = 0.0
-            if self._worker is not None:
-                self._listen(name, bus)
+            if direct and self._worker is not None:
+                self._request(("swap", name, retired))    # the worker stops polling prev, then shuts it
+            else:
+                if retired is not None:
+                    self._shutdown(retired)
+                if self._worker is not None:
+                    self._listen(name, bus)
         log.warning("CAN bus %s: listening on a new bus object (%s)", name, getattr(bus, "channel_info", bus))
 
     @staticmethod
@@ -347,33 +428,160 @@ class GatewayService:
     # --- the worker --------------------------------------------------------------------------
 
     def _work(self) -> None:
-        get, feed, rec = self._queue.get, self.pipeline.feed, self.recorder
+        """Threads mode: frames from the notifiers' queue."""
+        get, empty, feed = self._queue.get, self._queue.empty, self.pipeline.feed
         while True:
             item = get()
             if item is _STOP:
-                with self._lock:
-                    self.pipeline.flush()
+                self._final_flush()
                 return
             if isinstance(item, threading.Event):
+                self._publish_held()
                 item.set()
                 continue
-            st, msg = item
             with self._lock:
-                st.processed += 1
-                if rec is not None:
-                    rec.record_can(st.name, msg, int(msg.timestamp * 1e9))
-                self._frame_ns = int(msg.timestamp * 1e9)
-                try:
-                    feed(st.name, msg)
-                except Exception:  # noqa: BLE001 - a bug behind one frame must not stop the gateway
-                    self.pipeline_errors += 1
-                    if self.pipeline_errors <= 10:
-                        log.exception("pipeline error on a frame of bus %s (counted; continuing)", st.name)
+                self._process(item, feed)
+            if self._held and empty():
+                self._publish_held()
+
+    def _process(self, item: tuple, feed) -> None:
+        """One frame through the recorder and the pipeline (the caller holds ``self._lock``)."""
+        st, msg = item
+        st.processed += 1
+        t_ns = self._frame_ns = int(msg.timestamp * 1e9)
+        if self.recorder is not None:
+            self.recorder.record_can(st.name, msg, t_ns)
+        try:
+            feed(st.name, msg)
+        except Exception:  # noqa: BLE001 - a bug behind one frame must not stop the gateway
+            self.pipeline_errors += 1
+            if self.pipeline_errors <= 10:
+                log.exception("pipeline error on a frame of bus %s (counted; continuing)", st.name)
+
+    def _final_flush(self) -> None:
+        with self._lock:
+            self.pipeline.flush()
+        self._publish_held()
+
+    def _work_direct(self) -> None:
+        """Direct mode: the worker polls the buses' sockets itself (module docstring)."""
+        feed, lock, backlog, requests = self.pipeline.feed, self._lock, self._backlog, self._queue
+        poller = select.poll()
+        poller.register(self._wake_r, select.POLLIN)
+        watched: dict[int, tuple[str, can.BusABC, BusState]] = {}     # fd -> the bus polled on it
+        fd_of: dict[str, int] = {}
+        retry_at: dict[str, float] = {}                                 # failed buses: when to try again
+        drains: list[threading.Event] = []
+        bad = select.POLLERR | select.POLLHUP | select.POLLNVAL
+
+        def fail(name: str, st: BusState, exc: Exception) -> None:
+            unwatch(name)
+            retry_at[name] = time.monotonic() + self._failed(st, exc)
+
+        def receive(name: str, bus: can.BusABC, st: BusState, ev: int) -> int:
+            got = 0
+            try:
+                while got < DRAIN_MAX:
+                    msg = bus.recv(0)
+                    if msg is None:
+                        break
+                    got += 1
+                    if self._admit(st, len(backlog)):
+                        backlog.append((st, msg))
+                if not got and ev & bad:
+                    raise can.CanOperationError("the bus's socket is closed" if ev & select.POLLNVAL
+                                                else "the bus's socket reports an error or hang-up")
+            except Exception as exc:  # noqa: BLE001 - any recv failure: counted, backed off, retried
+                fail(name, st, exc)
+                return got
+            if got and st.down_since is not None:
+                self._back_up(st)
+            return got
+
+        def watch(name: str) -> None:
+            bus, st = self.buses[name], self.bus_state[name]
+            try:
+                fd = int(bus.fileno())
+                if fd < 0:
+                    raise can.CanOperationError("the bus has no open socket")
+                poller.register(fd, select.POLLIN | select.POLLPRI)
+            except Exception as exc:  # noqa: BLE001
+                retry_at[name] = time.monotonic() + self._failed(st, exc)
+                return
+            watched[fd], fd_of[name] = (name, bus, st), fd
+            retry_at.pop(name, None)
+            receive(name, bus, st, 0)      # what is waiting, and a failing bus fails again now
+
+        def unwatch(name: str) -> None:
+            fd = fd_of.pop(name, None)
+            if fd is not None:
+                watched.pop(fd, None)
+                with contextlib.suppress(KeyError, ValueError, OSError):
+                    poller.unregister(fd)
+
+        for name in self.wire.buses:
+            watch(name)
+        while True:
+            stop = False
+            while not requests.empty():
+                item = requests.get()
+                if item is _STOP:
+                    stop = True
+                elif isinstance(item, threading.Event):
+                    drains.append(item)
+                else:                                         # ("swap", name, the old bus to shut down)
+                    _, name, retired = item
+                    unwatch(name)
+                    if retired is not None:
+                        self._shutdown(retired)
+                    watch(name)
+            if stop:
+                break
+            if retry_at:
+                now = time.monotonic()
+                for name in [n for n, t in retry_at.items() if t <= now]:
+                    watch(name)
+            if backlog or drains:
+                timeout = 0
+            elif self._held:
+                timeout = QUIET_S
+            else:
+                timeout = IDLE_POLL_S
+                if retry_at:
+                    timeout = max(0.0, min(timeout, min(retry_at.values()) - time.monotonic()))
+            got = 0
+            for fd, ev in poller.poll(timeout * 1000.0):
+                if fd == self._wake_r:
+                    with contextlib.suppress(OSError):
+                        os.read(fd, 4096)
+                    continue
+                w = watched.get(fd)
+                if w is not None:
+                    got += receive(*w, ev)
+            if backlog:
+                with lock:
+                    for _ in range(min(DIRECT_BATCH, len(backlog))):
+                        self._process(backlog.popleft(), feed)
+                if self._efforts_out and not backlog and self._held:    # a step's efforts are out
+                    self._publish_held()
+            elif not got:                                     # nothing waiting anywhere (quiet)
+                if self._held:
+                    self._publish_held()
+                if drains:
+                    for ev_ in drains:
+                        ev_.set()
+                    drains.clear()
+        while backlog:                                        # closing: what was received goes through
+            with lock:
+                self._process(backlog.popleft(), feed)
+        self._final_flush()
+        for ev_ in drains:
+            ev_.set()
 
     @property
     def backlog(self) -> int:
         """Frames waiting for the worker (at most ``max_backlog``)."""
-        return self._queue.qsize()
+        return len(self._backlog) if self.receive == "direct" else self._queue.qsize()
 
     @property
     def stats(self) -> dict:
@@ -384,7 +592,8 @@ class GatewayService:
                 "processed": sum(st.processed for st in self.bus_state.values()),
                 "dropped": sum(st.dropped for st in self.bus_state.values()),
                 "backlog": self.backlog, "peak_backlog": self.peak_backlog, "max_backlog": self.max_backlog,
-                "overflow_episodes": self.overflow_episodes, "pipeline_errors": self.pipeline_errors}
+                "overflow_episodes": self.overflow_episodes, "pipeline_errors": self.pipeline_errors,
+                "receive": self.receive}
 
     # --- hooks -------------------------------------------------------------------------------
 
@@ -399,7 +608,18 @@ class GatewayService:
     def _emit(self, key: str, obj) -> None:
         if self.recorder is not None:
             self.recorder.record(key, obj, self._frame_ns)
-        if self.publish_samples or "/sensors/" not in key:
+        if "/sensors/" not in key:
+            self.publish(key, obj)
+            self._efforts_out = True
+        elif self.publish_samples:             # published when no frame waits (the worker's thread)
+            self._held.append((key, obj))
+            if len(self._held) >= SAMPLES_HELD_MAX:
+                self._publish_held()
+
+    def _publish_held(self) -> None:
+        self._efforts_out = False
+        held, self._held = self._held, []
+        for key, obj in held:
             self.publish(key, obj)
 
     def publish(self, key: str, obj) -> None:

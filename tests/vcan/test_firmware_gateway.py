@@ -207,6 +207,7 @@ def test_firmware_and_gateway_processes_over_socketcan(tmp_path):
         robot = sim.robot
         readings = [snapshot(sim.step()) for _ in range(sim.n_steps)]      # the firmware's run, deterministic
         gw.wait_ready()
+        assert "(receive: direct)" in gw.out[-1], gw.out[-1]     # socketcan: the worker polls the sockets
         with zenoh.open(make_config(connect=[endpoint])) as session:
             sub = session.declare_subscriber(keys.health(robot.name), watch)
             try:

@@ -1,0 +1,209 @@
+"""The gateway's direct receive mode (one worker thread polls every bus's socket): what SocketCAN
+and udp_multicast deployments run. Buses: :mod:`dgram_bus` (real file descriptors, in-process);
+the simulator's capture scenario and its firmware make the frames. zenoh: loopback, no scouting."""
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+
+import can
+import pytest
+
+import robot_description
+from drivers import wire
+from drivers.samples import BusHealth, WrenchSample
+from gateway import keys
+from gateway.bridge import GatewayError, GatewayService
+from gateway.efforts import JointEfforts, ThrusterEffort
+from simulator import firmware, scenario
+from simulator.engine import DT_S, Simulation
+
+from dgram_bus import dgram_pair
+from test_bridge import Collector, sessions  # noqa: F401 - the zenoh pair fixture
+
+WAIT_S = 20.0
+
+
+class Rig:
+    """The capture scenario's firmware frames onto one datagram bus pair per robot bus."""
+
+    def __init__(self, seconds: float = 0.4):
+        self.sim = Simulation(scenario.load("capture", {"duration_s": seconds}))
+        self.robot = self.sim.robot
+        self.fw = firmware.Firmware(self.robot)
+        self.rx, self.tx = {}, {}
+        for name in wire.WireMap.from_robot(self.robot).buses:
+            self.rx[name], self.tx[name] = dgram_pair(name)
+        self.sent = {name: 0 for name in self.rx}
+
+    def steps(self, n: int, *, realtime: bool = False) -> None:
+        """``n`` simulator steps' frames (stamped with simulated time); ``realtime``: step k goes
+        out k ms after the first (otherwise as fast as the sockets take them)."""
+        t0 = time.monotonic()
+        for k in range(n):
+            if self.sim.k >= self.sim.n_steps:
+                return
+            r = self.sim.step()
+            if realtime:
+                wait = t0 + k * DT_S - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            for bus, msg in self.fw.frames(r):
+                self.tx[bus].send(msg)
+                self.sent[bus] += 1
+
+    def close(self) -> None:
+        for b in (*self.rx.values(), *self.tx.values()):
+            b.shutdown()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def wait_for(pred, what: str, timeout: float = WAIT_S) -> None:
+    end = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < end, what
+        time.sleep(0.005)
+
+
+def test_direct_mode_is_chosen_for_pollable_buses_and_publishes_everything(sessions, rig):  # noqa: F811
+    pub_s, sub_s = sessions
+    name = rig.robot.name
+    col = Collector(lambda got: sum(isinstance(o, ThrusterEffort) for _, o in got) >= 50
+                    and any(isinstance(o, WrenchSample) for _, o in got))
+    sub = sub_s.declare_subscriber(keys.everything(name), col)
+    try:
+        with GatewayService(rig.robot, rig.rx, pub_s) as gw:
+            assert gw.receive == "direct" and gw.stats["receive"] == "direct"
+            assert not gw._notifiers                          # no notifier thread at all
+            rig.steps(300, realtime=True)
+            wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
+            assert gw.drain(WAIT_S)
+            st = gw.stats
+            assert st["processed"] == st["received"] == sum(rig.sent.values()) and st["dropped"] == 0
+            assert col.done.wait(WAIT_S), [k for k, _ in col.got][:10]
+        efforts = [o for _, o in col.got if isinstance(o, JointEfforts)]
+        assert len(efforts) == 2 * 300 and sum(e.good for e in efforts) >= 0.95 * len(efforts)
+    finally:
+        sub.undeclare()
+
+
+def test_direct_mode_held_samples_go_out_even_without_an_estimator(sessions, rig):  # noqa: F811
+    """Decoded samples wait for a quiet moment (no frame waiting), not for an effort."""
+    pub_s, sub_s = sessions
+    col = Collector(lambda got: sum(isinstance(o, WrenchSample) for _, o in got) >= 20)
+    sub = sub_s.declare_subscriber(keys.sensors(rig.robot.name), col)
+    try:
+        with GatewayService(rig.robot, rig.rx, pub_s, estimate=False):
+            rig.steps(20)
+            assert col.done.wait(WAIT_S), len(col.got)
+    finally:
+        sub.undeclare()
+
+
+def test_receive_modes_are_checked(sessions, rig):  # noqa: F811
+    pub_s, _ = sessions
+    prefix = f"bsc-direct-{uuid.uuid4().hex}"
+    virtual = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), ignore_config=True)
+               for n in rig.rx}
+    try:
+        with pytest.raises(GatewayError, match="pollable"):
+            GatewayService(rig.robot, virtual, pub_s, receive="direct")
+        with pytest.raises(GatewayError, match="receive must be"):
+            GatewayService(rig.robot, rig.rx, pub_s, receive="fast")
+        assert GatewayService(rig.robot, virtual, pub_s).receive == "threads"
+        gw = GatewayService(rig.robot, rig.rx, pub_s, receive="threads").start()
+        try:
+            rig.steps(5)
+            wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "threads mode over pollable buses")
+        finally:
+            gw.close()
+    finally:
+        for b in virtual.values():
+            b.shutdown()
+
+
+def test_direct_mode_a_failing_bus_is_counted_and_the_others_continue(sessions, rig):  # noqa: F811
+    pub_s, _ = sessions
+    with GatewayService(rig.robot, rig.rx, pub_s, retry_s=0.05) as gw:
+        rig.steps(20)
+        wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "before the failure")
+        rig.rx["arm1"].failing = True
+        before = {n: gw.bus_state[n].received for n in rig.rx}
+        rig.steps(40, realtime=True)
+        wait_for(lambda: gw.bus_state["arm1"].down_since is not None, "the failure is not seen")
+        st = gw.bus_state["arm1"]
+        assert st.rx_errors >= 1 and st.outages == 1 and "link down" in st.last_error
+        for other in ("arm0", "spacecraft"):          # unaffected
+            wait_for(lambda: gw.bus_state[other].received == rig.sent[other], f"{other} stalled")
+        assert gw.bus_state["arm1"].received == before["arm1"]
+        rig.rx["arm1"].failing = False                # back: what waited in its socket comes in
+        rig.steps(10)
+        wait_for(lambda: gw.bus_state["arm1"].received == rig.sent["arm1"], "arm1 did not resume")
+        wait_for(lambda: st.down_since is None, "arm1 still down")
+        assert st.outages == 1
+        health = {h.bus: h for h in gw.health() if isinstance(h, BusHealth)}
+        assert dict(health["arm1"].rejected).get("rx_error", 0) == st.rx_errors
+
+
+def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  # noqa: F811
+    pub_s, _ = sessions
+    spare: dict = {}
+    lock = threading.Lock()
+
+    def reopen(name: str):
+        with lock:
+            if name in spare:
+                raise can.CanInitializationError("only one spare")
+            spare[name] = dgram_pair(f"{name}-new")
+            return spare[name][0]
+
+    try:
+        with GatewayService(rig.robot, rig.rx, pub_s, reopen=reopen, retry_s=0.05) as gw:
+            rig.steps(20)
+            wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "before")
+            rig.rx["arm0"].break_socket()             # the adapter went away
+            wait_for(lambda: "arm0" in spare and gw.buses["arm0"] is spare["arm0"][0], "no reopen")
+            st = gw.bus_state["arm0"]
+            assert st.outages == 1 and st.rx_errors >= 1 and st.reopened == 1
+            got = st.received
+            rig.tx.pop("arm0").shutdown()
+            rig.tx["arm0"] = spare["arm0"][1]             # the firmware now reaches the new bus
+            rig.sent["arm0"] = 0
+            rig.steps(10)
+            wait_for(lambda: st.received == got + rig.sent["arm0"], "nothing from the new bus")
+            wait_for(lambda: st.down_since is None, "still down")
+        assert getattr(spare["arm0"][0], "_is_shutdown", False)     # the service closed what it opened
+    finally:
+        for rx, _ in spare.values():
+            rx.shutdown()                 # (its tx is in the rig now)
+
+
+def test_direct_mode_overflow_is_counted_frame_by_frame(sessions, rig):  # noqa: F811
+    pub_s, _ = sessions
+    gw = GatewayService(rig.robot, rig.rx, pub_s, max_backlog=40)
+    feed = gw.pipeline.feed
+
+    def slow_feed(bus, msg):                      # a worker far slower than the buses
+        time.sleep(0.0005)
+        feed(bus, msg)
+
+    gw.pipeline.feed = slow_feed                  # bound by the worker when it starts
+    try:
+        gw.start()
+        rig.steps(150)
+        wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
+        assert gw.drain(WAIT_S)
+        st = gw.stats
+        assert st["dropped"] > 0 and st["overflow_episodes"] >= 1 and st["peak_backlog"] == 40
+        assert st["received"] == st["processed"] + st["dropped"] == sum(rig.sent.values())
+        health = {h.bus: dict(h.rejected) for h in gw.health() if isinstance(h, BusHealth)}
+        assert sum(r.get("overflow", 0) for r in health.values()) == st["dropped"]
+    finally:
+        gw.close()
