@@ -10,8 +10,7 @@ Publishing (:func:`declare_publisher`, :func:`put`): every bsc publisher sends t
 the zenoh attachment ``publish_ns`` (decimal ASCII ns), so payloads of the same sample are equal
 bytes whenever they are sent. Efforts, alerts and health go with congestion control BLOCK
 (zenoh's default, DROP, loses them silently when its send queue is full: a slow consumer must
-slow the producer, whose own queue counts what it drops) and ``express`` (sent at once, not held
-for batching: a few messages per step, each waited for); raw samples keep DROP and batching.
+slow the producer, whose own queue counts what it drops); raw samples keep DROP.
 """
 from __future__ import annotations
 
@@ -36,9 +35,8 @@ def declare_publisher(session, key: str):
     """A zenoh publisher for ``key`` with bsc's congestion policy (module docstring)."""
     import zenoh
 
-    if "/sensors/" in key:
-        return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
-    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+    cc = zenoh.CongestionControl.DROP if "/sensors/" in key else zenoh.CongestionControl.BLOCK
+    return session.declare_publisher(key, congestion_control=cc)
 
 
 def put(publisher, payload: bytes) -> None:
