@@ -10,8 +10,9 @@ publishers it creates. Lifecycle::
 
 Threads. ONE worker thread takes the frames, in arrival order per bus, through
 :class:`gateway.pipeline.Pipeline` (drivers, then the estimator) and publishes what comes out:
-efforts and health at once, decoded samples when the worker has no frame waiting (so a step's
-efforts never wait behind its samples' publishing). The recorder (``record=``) gets the raw
+efforts and health at once; decoded samples once the step's efforts are out or no frame is
+waiting (so a step's efforts never wait behind its samples' publishing; without the estimator,
+at once). The recorder (``record=``) gets the raw
 frames in exactly the order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte
 for byte. How frames reach the worker (``receive=``):
 
@@ -75,7 +76,8 @@ DIRECT_BATCH = 32                    # direct mode: frames processed between two
 DRAIN_MAX = 16                       # direct mode: frames taken from one socket before the next one's turn
                                      # (a few steps: the buses stay interleaved close to arrival order)
 IDLE_POLL_S = 0.1                    # direct mode: longest wait in poll (stop, retries, requests)
-QUIET_S = 0.0002                     # direct mode: no frame for this long -> publish the held samples
+QUIET_S = 0.001                      # direct mode: no frame for this long -> publish the held samples
+                                     # (poll's resolution: 1 ms)
 SAMPLES_HELD_MAX = 512               # decoded samples held for publishing while frames are waiting
 RECEIVE_MODES = ("auto", "direct", "threads")
 
@@ -183,6 +185,7 @@ class GatewayService:
         self._wake_r = self._wake_w = -1                          # direct mode: wakes the worker's poll
         self._held: list = []                                     # decoded samples waiting to be published
         self._efforts_out = False                                 # published something else since
+        self._hold_samples = estimate                             # hold samples behind the efforts
         self._qlock = threading.Lock()           # admission: size check + put + counters, per frame
         self._shedding = False
         self.peak_backlog = 0
@@ -611,8 +614,11 @@ class GatewayService:
         if "/sensors/" not in key:
             self.publish(key, obj)
             self._efforts_out = True
-        elif self.publish_samples:             # published when no frame waits (the worker's thread)
-            self._held.append((key, obj))
+        elif self.publish_samples:
+            if not self._hold_samples:         # drivers only: the samples are what is published
+                self.publish(key, obj)
+                return
+            self._held.append((key, obj))      # published once the step's efforts are out
             if len(self._held) >= SAMPLES_HELD_MAX:
                 self._publish_held()
 

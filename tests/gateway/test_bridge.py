@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -178,10 +179,15 @@ def arm0_ft_then_close(sessions, keyexpr: str, want, *, before_close=None, **ser
     try:
         subscribed(pub_s, sub_s)
         gw = GatewayService(robot, buses, pub_s, **service_kw).start()
+        sent = 0
         for c in range(3):
             for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):
                 tx.send(m)
-        assert gw.drain(10.0)
+                sent += 1
+        end = time.monotonic() + 10.0         # drain() covers what the notifiers have received so far
+        while gw.stats["received"] < sent and time.monotonic() < end:
+            time.sleep(0.002)
+        assert gw.drain(10.0) and gw.stats["processed"] == sent
         if before_close is not None:
             before_close(col.got)
         gw.close()

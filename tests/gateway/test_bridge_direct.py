@@ -94,8 +94,8 @@ def test_direct_mode_is_chosen_for_pollable_buses_and_publishes_everything(sessi
         sub.undeclare()
 
 
-def test_direct_mode_held_samples_go_out_even_without_an_estimator(sessions, rig):  # noqa: F811
-    """Decoded samples wait for a quiet moment (no frame waiting), not for an effort."""
+def test_direct_mode_samples_go_out_without_an_estimator(sessions, rig):  # noqa: F811
+    """Without the estimator nothing is held: the samples are what the gateway publishes."""
     pub_s, sub_s = sessions
     col = Collector(lambda got: sum(isinstance(o, WrenchSample) for _, o in got) >= 20)
     sub = sub_s.declare_subscriber(keys.sensors(rig.robot.name), col)
