@@ -10,7 +10,9 @@ Publishing (:func:`declare_publisher`, :func:`put`): every bsc publisher sends t
 the zenoh attachment ``publish_ns`` (decimal ASCII ns), so payloads of the same sample are equal
 bytes whenever they are sent. Efforts, alerts and health go with congestion control BLOCK
 (zenoh's default, DROP, loses them silently when its send queue is full: a slow consumer must
-slow the producer, whose own queue counts what it drops); raw samples keep DROP.
+slow the producer, whose own queue counts what it drops) and zenoh's ``express`` (sent at once,
+not held for batching: a few messages per step; in the latency benchmark the hop's p99 went from
+1.3-1.4 ms to 0.35-0.64 ms). Raw samples keep DROP and batching.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ def declare_publisher(session, key: str):
     import zenoh
 
     cc = zenoh.CongestionControl.DROP if "/sensors/" in key else zenoh.CongestionControl.BLOCK
-    return session.declare_publisher(key, congestion_control=cc)
+    return session.declare_publisher(key, congestion_control=cc, express=cc == zenoh.CongestionControl.BLOCK)
 
 
 def put(publisher, payload: bytes) -> None:
