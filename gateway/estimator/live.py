@@ -377,5 +377,5 @@ class LiveEstimator:
             tc.moment_nm if tc else (0.0, 0.0, 0.0),
             tc.t_ns if tc else 0, tc.valves if tc else 0,
             good, flags))
-        if self._pending:                 # off the latency path: the next epoch needs these first
-            self._apply_pending(t)
+        if self._pending:                 # off the latency path: what the next epoch applies first
+            self._apply_pending(t + self.half)

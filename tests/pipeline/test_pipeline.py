@@ -87,6 +87,8 @@ def test_the_imu_update_runs_after_the_epochs_efforts_are_out():
     an IMU sample stamped in epoch t updates the filter after epoch t's efforts are emitted and
     before epoch t + 1 is computed, whether it arrived before or after epoch t completed."""
     robot, frames = _frames()
+    for _, msg in frames:                 # wall-clock stamps: float seconds, so ns-level jitter
+        msg.timestamp += 1.7e9            # and a grid that drifts by a ns now and then
     log = []
     pl = Pipeline(robot, emit=lambda k, o: log.append(("effort", o.t_ns)) if isinstance(o, ThrusterEffort) else None)
     kf = pl.estimator.kf
@@ -108,7 +110,7 @@ def test_the_imu_update_runs_after_the_epochs_efforts_are_out():
         while log[k][0] == "imu":                          # (two at once after a late sample)
             k -= 1
         # in the same frame's processing as its epoch's efforts, right after them
-        assert log[k] == ("effort", t), log[k - 2:i + 1]
+        assert log[k][0] == "effort" and abs(log[k][1] - t) < 1000, log[k - 2:i + 1]
 
 
 @pytest.mark.parametrize("lag_us", [0, 300])
