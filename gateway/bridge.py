@@ -12,9 +12,9 @@ Threads. ONE worker thread takes the frames, in arrival order per bus, through
 :class:`gateway.pipeline.Pipeline` (drivers, then the estimator) and publishes what comes out:
 efforts and health at once; decoded samples once the step's efforts are out or no frame is
 waiting (so a step's efforts never wait behind its samples' publishing; without the estimator,
-at once). The recorder (``record=``) gets the raw
-frames in exactly the order the pipeline saw them, so ``bsc replay`` reproduces the efforts byte
-for byte. How frames reach the worker (``receive=``):
+at once). The recorder (``record=``) gets the raw frames in exactly the order the pipeline saw
+them, so ``bsc replay`` reproduces the efforts byte for byte. How frames reach the worker
+(``receive=``):
 
 - ``"direct"`` (the default when every bus has a pollable ``fileno()``: SocketCAN,
   ``udp_multicast``): the worker itself waits on all the buses' sockets with ``poll`` and drains
