@@ -34,8 +34,8 @@ import ipaddress
 import math
 import random
 import time
-from collections import Counter
-from dataclasses import dataclass, fields, replace
+from collections import Counter, deque
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Callable, Mapping
 
 import can
@@ -178,7 +178,8 @@ class Firmware:
     produced (including those silenced), then per fault kind the number of samples it hit
     (``duplicate_last``: duplicates of the part that completes a multi-frame sample, also
     counted in ``duplicate``; ``silent``: samples not sent; ``jump``: counter values skipped).
-    ``frames_sent[bus]``: frames handed out for each bus.
+    ``frames_sent[bus]``: frames handed out for each bus. ``pacing``: how late the steps of a
+    real-time :func:`run_on_buses` went out.
     """
 
     def __init__(self, robot, *, fd: bool = False, faults: Faults | None = None):
@@ -219,6 +220,7 @@ class Firmware:
             self._stream(dev, "counter_jumps").jumps.append((round(at * 1e9), jump))
         self.counts: dict[str, Counter] = {d: Counter({k: 0 for k in COUNT_KEYS}) for d in self._streams}
         self.frames_sent: Counter = Counter({b: 0 for b in self.wire.buses})
+        self.pacing: Pacing | None = None        # set by run_on_buses(realtime=True)
         self._cycle_ns = {i: lay.cycle_ms * 1_000_000 for kind in ("arm", "spacecraft")
                           for i, lay in wire.layouts(kind).items()}
         self._torque: object = None                  # the controller's latest outputs (held)
@@ -484,6 +486,10 @@ def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool
     return buses
 
 
+LOOKAHEAD_STEPS = 50          # real time: how far the simulation may run ahead of the wire (steps)
+COMPUTE_MARGIN_S = 0.0004     # real time: compute one more step only if the next send is this far off
+
+
 def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | None = None, realtime: bool = False,
                  progress: bool = False, on_step: Callable | None = None):
     """Step ``sim`` to its end and send every frame of every step on its bus; returns the
@@ -493,8 +499,13 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
     is byte-for-byte and stamp-for-stamp reproducible. Real time: step ``k`` is sent no earlier
     than ``k`` ms after the start on the monotonic clock, and each frame is stamped with the
     wall clock (``time.time()``, python-can's time base) when it is sent; a step that falls
-    behind is sent at once (no catch-up pause). ``on_step(readings)`` runs after each step's
+    behind is sent at once (no catch-up pause). The simulation runs up to
+    :data:`LOOKAHEAD_STEPS` ahead of the wire, so one slow step does not delay the sends. ``on_step(readings)`` runs after each step's
     frames went out. Frames still held by a reorder fault are sent at the end.
+
+    In real time the firmware's :attr:`Firmware.pacing` says how late the steps went out (a
+    :class:`Pacing`): a receiver that stamps frames on arrival (SocketCAN, udp_multicast) sees
+    a step whose last frame left more than half a period late in the next step's slot.
     """
     fw = firmware or Firmware(sim.robot)
     missing = set(fw.wire.buses) - set(buses)
@@ -506,6 +517,7 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
         bar = tqdm(total=sim.n_steps, unit="ms", unit_scale=True, desc=f"sim {sim.scenario.name}",
                    mininterval=0.5, leave=False)
     t0 = time.perf_counter()
+    late_us: list[float] = []
 
     def send(batch):
         for name, msg in batch:
@@ -513,19 +525,66 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
                 msg.timestamp = time.time()
             buses[name].send(msg, timeout=SEND_TIMEOUT_S)
 
-    while sim.k < sim.n_steps:
+    ahead: deque = deque()            # real time: steps computed, waiting for their due time
+
+    def compute() -> None:
         r = sim.step()
-        batch = fw.frames(r)
+        ahead.append((t0 + r.t_ns * 1e-9, fw.frames(r), r))
+
+    while sim.k < sim.n_steps or ahead:
+        if not realtime:
+            compute()
+        else:
+            # the simulated robot runs ahead of the wire (its controller is inside the
+            # simulation): a slow step delays nothing as long as the lookahead lasts; a step is
+            # computed only while the next send is at least COMPUTE_MARGIN_S away
+            while (sim.k < sim.n_steps and len(ahead) < LOOKAHEAD_STEPS
+                   and (not ahead or ahead[0][0] - time.perf_counter() > COMPUTE_MARGIN_S)):
+                compute()
+        due, batch, r = ahead.popleft()
         if realtime:
-            delay = t0 + r.t_ns * 1e-9 - time.perf_counter()
+            delay = due - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-        send(batch)
+            send(batch)
+            late_us.append((time.perf_counter() - due) * 1e6)      # when its last frame left
+        else:
+            send(batch)
         if on_step is not None:
             on_step(r)
-        if bar is not None and sim.k % 250 == 0:
+        if bar is not None and (r.t_ns // 1_000_000 + 1) % 250 == 0:
             bar.update(250)
     send(fw.flush())
     if bar is not None:
         bar.close()
+    if realtime:
+        from simulator.engine import DT_S
+
+        fw.pacing = Pacing.of(late_us, DT_S * 1e6)
     return sim.trace
+
+
+@dataclass(frozen=True)
+class Pacing:
+    """How late a real-time run's steps went out: from each step's due time to the moment its
+    last frame was sent, us. ``late_steps``: steps later than half a period (their frames fall in
+    the next step's slot of a receiver that stamps on arrival)."""
+
+    steps: int
+    p50_us: float
+    p99_us: float
+    max_us: float
+    late_steps: int
+    period_us: float
+
+    @classmethod
+    def of(cls, late_us: list[float], period_us: float) -> "Pacing":
+        if not late_us:
+            return cls(0, 0.0, 0.0, 0.0, 0, period_us)
+        x = sorted(late_us)
+        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))], 1)  # noqa: E731
+        return cls(len(x), pick(0.5), pick(0.99), round(x[-1], 1),
+                   sum(v > period_us / 2 for v in x), period_us)
+
+    def as_dict(self) -> dict:
+        return asdict(self)

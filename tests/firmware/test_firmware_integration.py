@@ -93,3 +93,11 @@ def test_realtime_mode_paces_and_stamps_with_the_wall_clock():
     # stamped at send: within the run's wall-clock span, never the simulated 0..0.05 s
     assert got and all(t0 <= t <= t1 for t in got)
     assert got == sorted(got)
+    # paced, although the simulation runs ahead of the wire: the last step left at 49 ms or later
+    assert t1 - t0 >= 0.049 and got[-1] - t0 >= 0.049
+
+
+def test_pacing_counts_steps_later_than_half_a_period():
+    p = firmware.Pacing.of([10.0] * 97 + [499.0, 501.0, 3000.0], 1000.0)
+    assert (p.steps, p.late_steps, p.max_us, p.p50_us, p.p99_us) == (100, 2, 3000.0, 10.0, 3000.0)
+    assert firmware.Pacing.of([], 1000.0).steps == 0

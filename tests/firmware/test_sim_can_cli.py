@@ -47,7 +47,26 @@ def test_sim_can_errors_are_one_line(tmp_path):
                         (("-i", "virtual", "--silent", "arm7:0:1"), "no device 'arm7'"),
                         (("-i", "virtual", "--drop-rate", "2"), "probability"),
                         (("-i", "virtual", "-c", "arm0=a"), "missing arm1, spacecraft"),
-                        (("-i", "no_such_interface",), "cannot open the CAN buses")):
+                        (("-i", "no_such_interface",), "cannot open the CAN buses"),
+                        (("-i", "virtual", "--rt-priority", "10"), "needs --realtime"),
+                        (("-i", "virtual", "--realtime", "--rt-priority", "100"), "1-99")):
         r = _bsc(*args, tmp=tmp_path)
         assert r.returncode == 2, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1 and words in r.stderr, (args, r.stderr)
+
+
+def test_sim_realtime_reports_its_pacing(tmp_path):
+    """``--realtime`` says how late its steps went out, printed and in summary.json; with
+    ``--rt-priority`` it runs at SCHED_FIFO (where allowed) or says in one line why it cannot."""
+    r = _bsc("--interface", "virtual", "--channel", "bsc-cli-rt", "--realtime", tmp=tmp_path)
+    assert r.returncode == 0, r.stderr
+    pc = json.loads((tmp_path / "summary.json").read_text())["can"]["pacing"]
+    assert pc["steps"] == 50 and pc["period_us"] == 1000.0
+    assert 0 <= pc["p50_us"] <= pc["p99_us"] <= pc["max_us"] and 0 <= pc["late_steps"] <= 50
+    assert "real-time pacing: steps sent p50" in r.stdout
+    r = _bsc("--interface", "virtual", "--channel", "bsc-cli-rt", "--realtime", "--rt-priority", "5", tmp=tmp_path)
+    allowed = os.geteuid() == 0          # root here; elsewhere it depends on CAP_SYS_NICE / rlimits
+    if r.returncode == 0:
+        assert json.loads((tmp_path / "summary.json").read_text())["can"]["pacing"]["steps"] == 50
+    else:
+        assert not allowed and r.returncode == 2 and "CAP_SYS_NICE" in r.stderr, r.stderr
