@@ -24,9 +24,11 @@ file (killed recorder) is recovered into a temporary copy first (:func:`readable
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import fnmatch
+import heapq
 import json
 import os
 import re
@@ -51,6 +53,8 @@ OUTPUT_NAME = "replay.mcap"
 # The recorder's queue is drained at least this often by an offline replay (never refused).
 _BACKPRESSURE_EVERY = 4096
 _SLEEP_MIN_S = 0.0002          # closer than this to a frame's time: send now, not sleep
+REORDER_WINDOW_NS = 1_000_000_000   # live playback: messages are put in log-time order within this
+LATE_US = 500.0                # live playback: a message sent this much after its due time is late
 
 
 class ReplayError(ValueError):
@@ -723,6 +727,8 @@ class PlayStats:
     wall_s: float = 0.0
     log_s: float = 0.0
     interrupted: bool = False
+    late: int = 0                 # paced messages sent more than LATE_US after their due time
+    late_max_us: float = 0.0
 
     @property
     def total(self) -> int:
@@ -738,6 +744,10 @@ class PlayStats:
             out += "; skipped " + ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
         if self.errors:
             out += "; errors " + ", ".join(f"{k} {v}" for k, v in sorted(self.errors.items()))
+        if self.late:
+            out += (f"; {self.late} sent more than {LATE_US / 1000:g} ms after their recorded time (max "
+                    f"{self.late_max_us / 1000:.1f} ms): a receiver that stamps on arrival sees them late "
+                    "(--rt-priority helps)")
         if self.interrupted:
             out += "; interrupted"
         return out
@@ -767,6 +777,68 @@ class _Clock:
             if delay > _SLEEP_MIN_S:
                 return not self.stop.wait(delay)
         return not self.stop.is_set()
+
+    def until(self, t_ns: int) -> float:
+        """Seconds until log time ``t_ns`` is due (0 when not pacing or not started)."""
+        if self.rate <= 0 or self.t0 is None:
+            return 0.0
+        return self.wall0 + (t_ns - self.t0) / 1e9 / self.rate - time.monotonic()
+
+    def late_us(self, t_ns: int) -> float:
+        """How long after its due time log time ``t_ns`` is now (0 when not pacing)."""
+        if self.rate <= 0 or self.t0 is None:
+            return 0.0
+        return (time.monotonic() - self.wall0 - (t_ns - self.t0) / 1e9 / self.rate) * 1e6
+
+
+READ_AHEAD = 4096              # live playback: messages read and decoded ahead, while waiting
+
+
+def _read_ahead(items: Iterator[tuple[str, int, Any]], clock: "_Clock") -> Iterator[tuple[str, int, Any]]:
+    """``items`` through a buffer filled while the next message is not yet due: reading and
+    decoding the log happen in the gaps, so a burst of messages goes out back to back as it was
+    recorded, not spread by the reader's cost per message."""
+    buf: collections.deque = collections.deque()
+    it = iter(items)
+    more = True
+
+    def pull(n: int) -> None:
+        nonlocal more
+        for _ in range(n):
+            try:
+                buf.append(next(it))
+            except StopIteration:
+                more = False
+                return
+
+    while True:
+        if not buf:
+            if not more:
+                return
+            pull(64)
+            if not buf:
+                return
+        while more and len(buf) < READ_AHEAD and clock.until(buf[0][1]) > 0.0005:
+            pull(16)                                  # idle time: read ahead
+        yield buf.popleft()
+
+
+def _time_ordered(items: Iterator[tuple[str, int, Any]], window_ns: int = REORDER_WINDOW_NS
+                  ) -> Iterator[tuple[str, int, Any]]:
+    """``items`` in log-time order, as far as a message is less than ``window_ns`` out of place
+    (ties keep the recording order; a message read after others more than ``window_ns`` newer
+    went out is sent as soon as it is read). A gateway records in the order it processed, which
+    interleaves its buses in runs of a few frames; live playback must keep each message's time."""
+    heap: list = []
+    push, pop = heapq.heappush, heapq.heappop
+    for seq, (name, t, obj) in enumerate(items):
+        push(heap, (t, seq, name, obj))
+        while heap[0][0] <= t - window_ns:
+            t0, _, n0, o0 = pop(heap)
+            yield n0, t0, o0
+    while heap:
+        t0, _, n0, o0 = pop(heap)
+        yield n0, t0, o0
 
 
 def _bar(progress: bool, ctx: LogContext, start_ns, end_ns, desc: str):
@@ -802,11 +874,16 @@ def _play(ctx: LogContext, items: Callable[[], Iterator[tuple[str, int, Any]]],
             first = last_bar = None
             n = 0
             try:
-                for name, t, obj in items():
+                for name, t, obj in _read_ahead(_time_ordered(items()), clock):
                     if not clock.wait_for(t):
                         stats.interrupted = True
                         return
                     send(name, obj)
+                    late = clock.late_us(t)
+                    if late > LATE_US:
+                        stats.late += 1
+                        if late > stats.late_max_us:
+                            stats.late_max_us = late
                     n += 1
                     if first is None:
                         first = last_bar = t
@@ -832,7 +909,9 @@ def play_can(path: str | os.PathLike[str], buses: Mapping[str, Any], *, rate: fl
              stop: threading.Event | None = None, progress: bool = False,
              warn: Warn = _no_warn) -> PlayStats:
     """Send the raw frames of ``path`` on ``buses`` (logical bus -> open ``can.BusABC``) with
-    their recorded spacing divided by ``rate`` (0: as fast as possible), in recording order.
+    their recorded spacing divided by ``rate`` (0: as fast as possible), in log-time order (each
+    bus's frames keep their recorded order; see :func:`_time_ordered`). ``stats.late`` counts the
+    frames that went out more than :data:`LATE_US` after their due time.
 
     Frames of buses not in ``buses`` are skipped (counted). ``can_ids`` and ``topics``
     (globs over ``/can/<bus>``) filter; ``start_s``/``duration_s`` cut a window relative to the

@@ -22,3 +22,32 @@ def stop_on_sigterm():
             signal.signal(signal.SIGTERM, previous)
 
     return stop, restore
+
+
+RT_PRIORITY_HELP = ("run at SCHED_FIFO priority N (1-99; root or CAP_SYS_NICE), as sensor hardware would, so "
+                    "that other load on the host does not delay the frames (the run reports how late they "
+                    "went out; docs/firmware.md)")
+
+
+def check_rt_priority(n: int) -> None:
+    """A ``--rt-priority`` value: 0 (off) or 1-99, else a one-line ValueError."""
+    if n and not 1 <= n <= 99:
+        raise ValueError(f"--rt-priority must be 1-99, got {n}")
+
+
+def set_rt_priority(n: int) -> None:
+    """Run this process at SCHED_FIFO priority ``n`` (nothing for 0); a one-line UserError when
+    the system does not allow it. For the commands that stand in for hardware on the buses
+    (``bsc sim --realtime``, ``bsc replay -i``): a receiver stamping frames on arrival sees any
+    scheduling delay of theirs as sensor timing."""
+    import os
+
+    from gateway.cli import UserError
+
+    if not n:
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(n))
+    except PermissionError:
+        raise UserError(f"--rt-priority {n}: SCHED_FIFO needs root or CAP_SYS_NICE "
+                        "(or run without it and read the lateness it reports)") from None

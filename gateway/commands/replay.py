@@ -48,6 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="only topics matching GLOB (e.g. '/can/arm0', 'bsc/*/efforts/**'; "
                           "repeatable)")
     sel.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    from gateway.commands import RT_PRIORITY_HELP
+
+    sel.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                     help="live playback (--interface, --zenoh): " + RT_PRIORITY_HELP)
     off = parser.add_argument_group("offline")
     off.add_argument("--robot", default=None, metavar="NAME|FILE",
                      help="robot description (default: the log's robot.urdf attachment)")
@@ -84,7 +88,12 @@ def run(args: argparse.Namespace) -> int:
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
     can_ids = parse_can_ids(args.can_id) if args.can_id else None
+    from gateway.commands import check_rt_priority
+
+    check_rt_priority(args.rt_priority)
     if args.out is not None:
+        if args.rt_priority:
+            raise UserError("--rt-priority is for live playback (--interface, --zenoh), not --out")
         return _offline(args, can_ids)
     if args.loop and args.rate == 0:
         raise UserError("--loop needs --rate > 0 (an unpaced endless loop would flood)")
@@ -122,6 +131,7 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
     import contextlib
 
     from gateway.commands import stop_on_sigterm
+    from gateway.commands import set_rt_priority
     from gateway.commands.gateway import channels, open_can
     from gateway.replay import play_can, read_context, readable
 
@@ -131,6 +141,7 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
             ctx = read_context(src)
             chans = channels(args.channel, list(ctx.buses), every=False)
             buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd)
+            set_rt_priority(args.rt_priority)
             stats = play_can(src, buses, rate=args.rate, loop=args.loop, start_s=args.start,
                              duration_s=args.duration, can_ids=can_ids,
                              topics=args.topic or None, stop=stop, progress=not args.quiet,
@@ -144,13 +155,14 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
 def _live_zenoh(args: argparse.Namespace) -> int:
     import zenoh
 
-    from gateway.commands import stop_on_sigterm
+    from gateway.commands import set_rt_priority, stop_on_sigterm
     from gateway.replay import play_zenoh
     from gateway.zenoh_config import config_from_args
 
     stop, restore = stop_on_sigterm()
     try:
         with zenoh.open(config_from_args(args)) as session:
+            set_rt_priority(args.rt_priority)
             stats = play_zenoh(args.file, session, rate=args.rate, loop=args.loop,
                                start_s=args.start, duration_s=args.duration,
                                topics=args.topic or None, stop=stop, progress=not args.quiet,

@@ -58,10 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     can_g.add_argument("--realtime", action="store_true",
                        help="pace each 1 ms step to the wall clock and stamp frames at send "
                             "(default: lockstep, as fast as possible, simulated-time stamps)")
-    can_g.add_argument("--rt-priority", type=int, default=0, metavar="N",
-                       help="with --realtime: run at SCHED_FIFO priority N (1-99; root or CAP_SYS_NICE), as "
-                            "sensor hardware would, so that other load on the host does not delay the steps "
-                            "(the run reports how late they went out; docs/firmware.md)")
+    from gateway.commands import RT_PRIORITY_HELP
+
+    can_g.add_argument("--rt-priority", type=int, default=0, metavar="N", help="with --realtime: " + RT_PRIORITY_HELP)
     f_g = p.add_argument_group("fault injection (docs/firmware.md; rates are per sample, exclusive)")
     for name, what in (("drop", "a frame is not sent"), ("duplicate", "a frame is sent twice"),
                        ("reorder", "a sample is sent after the device's next one"),
@@ -133,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--channel, --fd, --realtime and the fault options need --interface")
     if args.rt_priority and not args.realtime:
         raise ValueError("--rt-priority needs --realtime")
-    if args.rt_priority and not 1 <= args.rt_priority <= 99:
-        raise ValueError(f"--rt-priority must be 1-99, got {args.rt_priority}")
+    from gateway.commands import check_rt_priority
+
+    check_rt_priority(args.rt_priority)
     sc = scenario.load(args.scenario, overrides)
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -195,14 +195,9 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
     except (can.CanError, ImportError, NotImplementedError, OSError) as exc:
         raise UserError(f"cannot open the CAN buses on {args.interface} ({', '.join(chans.values())}): {exc}") from None
     with buses:
-        if args.rt_priority:
-            import os
+        from gateway.commands import set_rt_priority
 
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-            except PermissionError:
-                raise UserError(f"--rt-priority {args.rt_priority}: SCHED_FIFO needs root or CAP_SYS_NICE "
-                                "(or run without it and read the pacing report)") from None
+        set_rt_priority(args.rt_priority)
         trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=args.realtime, progress=not args.quiet)
     totals = {k: sum(fw.counts[d][k] for d in fw.devices) for k in firmware.COUNT_KEYS if k != "samples"}
     return trace, {"interface": args.interface, "channels": chans, "fd": args.fd, "realtime": args.realtime,

@@ -12,6 +12,7 @@ import random
 import socket
 import struct
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -492,9 +493,75 @@ def test_read_only_output_and_bad_options(session, tmp_path, read_only_dir, caps
         (["--out", str(tmp_path / "e"), "--robot", "no_such_robot"], "no such robot"),
         (["--out", str(tmp_path / "f"), "--topic", "/can/none"], "--topic"),
         (["--zenoh", "--loop", "--rate", "0"], "--loop"),
+        (["--out", str(tmp_path / "g"), "--rt-priority", "10"], "live playback"),
+        (["--zenoh", "--rt-priority", "200"], "1-99"),
     ]
     for args, message in cases:
         rc = main(["replay", path, *args, "--quiet"])
         err = capsys.readouterr().err
         assert rc == 2, (args, err)
         assert err.count("\n") == 1 and message in err and "Traceback" not in err, (args, err)
+
+
+# ----------------------------------------------------------------------------- live timing
+
+class _Capture:
+    """Stands in for a python-can bus in live playback: records what is sent and when;
+    ``stall_every``: every n-th frame the send takes ``stall_s`` (a host too busy to send)."""
+
+    def __init__(self, name: str, log: list, stall_every: int = 0, stall_s: float = 0.0):
+        self.name, self.log, self.stall_every, self.stall_s = name, log, stall_every, stall_s
+
+    def send(self, msg, timeout=None):
+        self.log.append((self.name, msg.timestamp, msg.arbitration_id, bytes(msg.data)))
+        if self.stall_every and len(self.log) % self.stall_every == 0:
+            time.sleep(self.stall_s)
+
+
+def _chunked(frame_list, run: int = 16) -> list:
+    """The order a direct-receive gateway records in: up to ``run`` frames of one bus, then the
+    next bus's, and so on (bursts of a few steps per bus, not log-time order)."""
+    per_bus: dict[str, list] = {}
+    for b, m in frame_list:
+        per_bus.setdefault(b, []).append((b, m))
+    out = []
+    while any(per_bus.values()):
+        for b in per_bus:
+            out += per_bus[b][:run]
+            per_bus[b] = per_bus[b][run:]
+    return out
+
+
+def test_live_can_plays_a_gateway_recording_in_log_time_order(robot, tmp_path):
+    fl = synthetic_frames(robot, 200)
+    path = tmp_path / "chunked.mcap"
+    record_live(path, robot, _chunked(fl))
+    log: list = []
+    stats = rp.play_can(path, {b: _Capture(b, log) for b in ("arm0", "arm1", "spacecraft")}, rate=0)
+    assert stats.total == len(fl) and stats.late == 0                  # rate 0: nothing is due
+    times = [t for _, t, _, _ in log]
+    assert times == sorted(times)                                      # across buses: log time
+    for b in ("arm0", "arm1", "spacecraft"):                           # each bus: as recorded
+        assert ([(i, d) for bb, _, i, d in log if bb == b]
+                == [(m.arbitration_id, bytes(m.data)) for bb, m in fl if bb == b])
+
+
+def test_live_can_counts_frames_sent_late(robot, tmp_path, session):
+    path = session[0]
+    log: list = []
+    buses = {b: _Capture(b, log, stall_every=500, stall_s=0.004) for b in ("arm0", "arm1", "spacecraft")}
+    stats = rp.play_can(path, buses, rate=2.0, duration_s=0.3)
+    assert stats.total == len(log) > 1000
+    assert stats.late >= 1 and stats.late_max_us >= 2000.0, (stats.late, stats.late_max_us)
+    assert "sent more than 0.5 ms after their recorded time" in stats.line("sent frames")
+    quiet = rp.play_can(path, {b: _Capture(b, []) for b in buses}, rate=0, duration_s=0.3)
+    assert quiet.late == 0 and "after their recorded time" not in quiet.line("sent frames")
+
+
+def test_time_ordered_keeps_ties_and_bounds_its_window():
+    items = [("a", 30, 1), ("b", 10, 2), ("a", 30, 3), ("b", 20, 4), ("c", 5_000, 5), ("b", 25, 6)]
+    # within the window: sorted by time, equal times in recording order
+    assert [o for _, _, o in rp._time_ordered(iter(items), window_ns=10_000)] == [2, 4, 6, 1, 3, 5]
+    # a message read more than the window after newer ones went out: sent as soon as it is read
+    late = [("b", 10, 1), ("a", 5_000, 2), ("a", 7_000, 3), ("b", 20, 4)]
+    assert [o for _, _, o in rp._time_ordered(iter(late), window_ns=1_000)] == [1, 2, 4, 3]
