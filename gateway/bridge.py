@@ -18,7 +18,8 @@ them, so ``bsc replay`` reproduces the efforts byte for byte. How frames reach t
 
 - ``"direct"`` (the default when every bus has a pollable ``fileno()``: SocketCAN,
   ``udp_multicast``): the worker itself waits on all the buses' sockets with ``poll`` and drains
-  each ready one with ``recv(0)`` into its own FIFO backlog. One Python thread per frame path: no
+  each ready one with ``recv(0)`` into its own backlog, one FIFO per bus, which it takes in
+  timestamp order across buses (:class:`_MergedBacklog`). One Python thread per frame path: no
   hand-off between threads and no wait for the GIL (docs/latency.md).
 - ``"threads"`` (the default otherwise, e.g. python-can ``virtual``): python-can runs one notifier
   thread per bus; each only tags the frame with its bus and puts it on one FIFO queue that the
@@ -30,7 +31,9 @@ bytes per waiting frame). Receiving never blocks on it: when the backlog reaches
 the service sheds load, dropping every arriving frame until the backlog is back to
 ``resume_backlog`` (90 % of it), so what gets through comes in contiguous runs that still make
 complete estimator epochs. In ``direct`` mode the worker drains the sockets between every
-:data:`DIRECT_BATCH` frames it processes, so the kernel's socket buffers never fill first. Every
+:data:`DIRECT_BATCH` frames it processes, so the kernel's socket buffers do not fill first while
+the worker runs. Each bus socket also gets an 8 MB kernel receive buffer
+(:func:`deepen_receive_buffer`) against the times it does not run. Every
 frame is counted per bus: ``received = processed + dropped + in the backlog`` (exactly; after
 :meth:`drain` nothing is in the backlog). Drops show in :attr:`stats` and in each bus's health as
 the rejection reason ``overflow``; the drivers see them as lost samples.
@@ -80,6 +83,34 @@ QUIET_S = 0.001                      # direct mode: no frame for this long -> pu
                                      # (poll's resolution: 1 ms)
 SAMPLES_HELD_MAX = 512               # decoded samples held for publishing while frames are waiting
 RECEIVE_MODES = ("auto", "direct", "threads")
+SOCKET_RCVBUF = 8 << 20              # bytes asked for each bus socket's kernel receive buffer
+SO_RCVBUFFORCE = 33                  # Linux; beyond net.core.rmem_max (needs CAP_NET_ADMIN)
+
+
+def deepen_receive_buffer(bus, size: int = SOCKET_RCVBUF) -> int | None:
+    """Ask for a ``size``-byte kernel receive buffer on ``bus``'s socket (SocketCAN,
+    udp_multicast), past ``net.core.rmem_max`` where allowed; returns the size the kernel
+    granted (it counts its own overhead, ~1 KB per frame), None for a bus without a socket.
+
+    The default (~200 KB, about 200 frames or 45 ms of one arm bus) overflows silently, in the
+    kernel, whenever the gateway is held off the CPU for longer; these frames then show up only
+    as lost samples. 8 MB rides out about 1.5 s."""
+    import socket
+
+    if not pollable(bus):
+        return None
+    try:
+        with socket.socket(fileno=os.dup(bus.fileno())) as s:    # a duplicate: the same socket
+            for opt in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
+                try:
+                    s.setsockopt(socket.SOL_SOCKET, opt, size)
+                    break
+                except OSError:
+                    continue
+            return s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    except OSError as exc:
+        log.debug("receive buffer of %s: %r", getattr(bus, "channel_info", bus), exc)
+        return None
 
 
 def pollable(bus) -> bool:
@@ -88,6 +119,47 @@ def pollable(bus) -> bool:
         return int(bus.fileno()) >= 0
     except Exception:  # noqa: BLE001 - NotImplementedError, a closed socket, ...
         return False
+
+
+class _MergedBacklog:
+    """The direct mode's backlog: one FIFO per bus, taken out in timestamp order across buses.
+
+    Buses carry different frame rates, so taking the same number of frames from each in turn
+    lets a backlog drift apart by bus (the busier bus falls behind, by tens of steps after a
+    second of backlog, and the estimator then forces its epochs out). :meth:`pop` gives the
+    earliest head, and ``None`` while a bus whose queue is empty may still hold frames in its
+    socket (``unread``): those could be earlier. Within a bus the order is arrival order."""
+
+    __slots__ = ("queues", "unread", "n")
+
+    def __init__(self, names):
+        self.queues: dict[str, collections.deque] = {n: collections.deque() for n in names}
+        self.unread: dict[str, bool] = dict.fromkeys(names, False)
+        self.n = 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def append(self, name: str, item: tuple) -> None:
+        self.queues[name].append(item)
+        self.n += 1
+
+    def pop(self, *, all_read: bool = False):
+        """The earliest waiting frame, or None (nothing waits, or a bus must be read first;
+        ``all_read``: the sockets will not be read again, take what is there)."""
+        best = None
+        t_best = 0.0
+        for name, q in self.queues.items():
+            if q:
+                t = q[0][1].timestamp
+                if best is None or t < t_best:
+                    best, t_best = q, t
+            elif self.unread[name] and not all_read:
+                return None
+        if best is None:
+            return None
+        self.n -= 1
+        return best.popleft()
 
 
 class GatewayError(Exception):
@@ -99,7 +171,7 @@ class BusState:
     the bus's notifier thread or the worker, read from anywhere)."""
 
     __slots__ = ("name", "received", "dropped", "processed", "rx_errors", "reopened", "reopen_failures",
-                 "down_since", "last_error", "backoff_s", "last_attempt", "outages")
+                 "down_since", "last_error", "backoff_s", "last_attempt", "outages", "rcvbuf")
 
     def __init__(self, name: str):
         self.name = name
@@ -109,11 +181,13 @@ class BusState:
         self.last_error = ""
         self.backoff_s = 0.0
         self.last_attempt = 0.0
+        self.rcvbuf: int | None = None            # the socket's kernel receive buffer, bytes
 
     def as_dict(self) -> dict:
         return {"received": self.received, "processed": self.processed, "dropped": self.dropped,
                 "rx_errors": self.rx_errors, "outages": self.outages, "down": self.down_since is not None,
-                "reopened": self.reopened, "reopen_failures": self.reopen_failures, "last_error": self.last_error}
+                "reopened": self.reopened, "reopen_failures": self.reopen_failures, "last_error": self.last_error,
+                "rcvbuf": self.rcvbuf}
 
 
 class _Tagger(can.Listener):
@@ -181,7 +255,7 @@ class GatewayService:
         self.reopen = reopen
         self.bus_state = {name: BusState(name) for name in self.wire.buses}
         self._queue: queue.SimpleQueue = queue.SimpleQueue()      # threads mode: frames; direct: requests
-        self._backlog: collections.deque = collections.deque()    # direct mode: the worker's own FIFO
+        self._backlog = _MergedBacklog(wire_map.buses)            # direct mode: the worker's own
         self._wake_r = self._wake_w = -1                          # direct mode: wakes the worker's poll
         self._held: list = []                                     # decoded samples waiting to be published
         self._efforts_out = False                                 # published something else since
@@ -211,6 +285,8 @@ class GatewayService:
         if self._closed:
             raise GatewayError("the gateway service is closed")
         if self._worker is None:
+            for name in self.wire.buses:
+                self.bus_state[name].rcvbuf = deepen_receive_buffer(self.buses[name])
             if self.receive == "direct":
                 self._wake_r, self._wake_w = os.pipe()
                 os.set_blocking(self._wake_r, False)
@@ -412,6 +488,7 @@ class GatewayService:
             if _owned:
                 self._owned.add(id(bus))
             st = self.bus_state[name]
+            st.rcvbuf = deepen_receive_buffer(bus)
             st.reopened += 1
             st.backoff_s = 0.0
             if direct and self._worker is not None:
@@ -483,6 +560,7 @@ class GatewayService:
 
         def receive(name: str, bus: can.BusABC, st: BusState, ev: int) -> int:
             got = 0
+            backlog.unread[name] = False
             try:
                 while got < DRAIN_MAX:
                     msg = bus.recv(0)
@@ -490,7 +568,8 @@ class GatewayService:
                         break
                     got += 1
                     if self._admit(st, len(backlog)):
-                        backlog.append((st, msg))
+                        backlog.append(name, (st, msg))
+                backlog.unread[name] = got == DRAIN_MAX         # its socket may hold more
                 if not got and ev & bad:
                     raise can.CanOperationError("the bus's socket is closed" if ev & select.POLLNVAL
                                                 else "the bus's socket reports an error or hang-up")
@@ -516,6 +595,7 @@ class GatewayService:
             receive(name, bus, st, 0)      # what is waiting, and a failing bus fails again now
 
         def unwatch(name: str) -> None:
+            backlog.unread[name] = False
             fd = fd_of.pop(name, None)
             if fd is not None:
                 watched.pop(fd, None)
@@ -563,8 +643,14 @@ class GatewayService:
                     got += receive(*w, ev)
             if backlog:
                 with lock:
-                    for _ in range(min(DIRECT_BATCH, len(backlog))):
-                        self._process(backlog.popleft(), feed)
+                    for _ in range(DIRECT_BATCH):
+                        item = backlog.pop()
+                        if item is None:                      # a bus must be read first
+                            break
+                        self._process(item, feed)
+                for name, more in backlog.unread.items():     # read it now, ready or not
+                    if more and not backlog.queues[name] and name in fd_of:
+                        receive(*watched[fd_of[name]], 0)
                 if self._efforts_out and not backlog and self._held:    # a step's efforts are out
                     self._publish_held()
             elif not got:                                     # nothing waiting anywhere (quiet)
@@ -576,7 +662,7 @@ class GatewayService:
                     drains.clear()
         while backlog:                                        # closing: what was received goes through
             with lock:
-                self._process(backlog.popleft(), feed)
+                self._process(backlog.pop(all_read=True), feed)
         self._final_flush()
         for ev_ in drains:
             ev_.set()

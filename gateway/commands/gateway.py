@@ -135,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
             gw.run(stop, args.duration)
         except KeyboardInterrupt:
             pass
-        print(f"bsc gateway: published {gw.published} messages; " +
-              ", ".join(f"{k} {v}" for k, v in gw.pipeline.stats.items()), flush=True)
+        st = gw.stats
+        print(f"bsc gateway: received {st['received']} frames, dropped {st['dropped']} (backlog full; peak "
+              f"{st['peak_backlog']} of {st['max_backlog']}), receive errors "
+              f"{sum(b['rx_errors'] for b in st['buses'].values())}; published {gw.published} messages; "
+              + ", ".join(f"{k} {v}" for k, v in gw.pipeline.stats.items()), flush=True)
     return 0
