@@ -118,6 +118,32 @@ def can_frame_to_record(msg) -> dict[str, Any]:
     }
 
 
+_JSON_BOOL = {True: "true", False: "false"}
+_CAN_JSON = ('{"t_ns":%d,"arbitration_id":%d,"is_extended_id":%s,"is_remote_frame":%s,"is_error_frame":%s,'
+             '"is_fd":%s,"bitrate_switch":%s,"error_state_indicator":%s,"is_rx":%s,"dlc":%d,"data":"%s",'
+             '"channel":%s}')
+_CHANNEL_JSON: dict = {}
+
+
+def can_frame_json(msg) -> tuple[int, bytes]:
+    """``(t_ns, JSON bytes)`` of :func:`can_frame_to_record`, encoded as the recorder's encoder
+    does (same bytes), about 3x faster: the gateway records every frame in its worker thread."""
+    try:
+        b = _JSON_BOOL
+        ch = _CHANNEL_JSON.get(msg.channel)
+        if ch is None:
+            rec_ch = can_frame_to_record(msg)["channel"]
+            ch = _CHANNEL_JSON[msg.channel] = _encode(rec_ch)
+        t = round(msg.timestamp * 1e9)
+        return t, (_CAN_JSON % (
+            t, msg.arbitration_id, b[msg.is_extended_id], b[msg.is_remote_frame], b[msg.is_error_frame],
+            b[msg.is_fd], b[msg.bitrate_switch], b[msg.error_state_indicator], b[msg.is_rx], msg.dlc,
+            base64.b64encode(bytes(msg.data)).decode("ascii"), ch)).encode()
+    except (KeyError, TypeError):        # a field that is not a plain bool, int or hashable channel
+        rec = can_frame_to_record(msg)
+        return rec["t_ns"], _encode(rec).encode()
+
+
 def can_frame_from_record(record: Mapping[str, Any]):
     """The python-can ``Message`` back from a ``bsc.CanFrame`` dict (inverse of the above)."""
     import can
@@ -487,11 +513,11 @@ class Recorder:
     def record_can(self, bus: str, msg, log_time_ns: int | None = None) -> bool:
         """Queue one raw CAN frame (python-can ``Message``) on topic ``/can/<bus>``."""
         info = self._topics.get(CAN_TOPIC_PREFIX + bus) or self._declare_can(bus)
-        rec = can_frame_to_record(msg)
-        t = rec["t_ns"] if log_time_ns is None else int(log_time_ns)
+        t_rec, data = can_frame_json(msg)
+        t = t_rec if log_time_ns is None else int(log_time_ns)
         if t < 0:
             raise ValueError(f"bus {bus}: log time {t} ns is negative")
-        return self._put((info.key, t, time.time_ns(), _encode(rec).encode()))
+        return self._put((info.key, t, time.time_ns(), data))
 
     def can_listener(self, bus: str):
         """A python-can ``Listener`` that records every frame of ``bus`` (for a ``Notifier``)."""
