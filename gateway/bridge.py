@@ -588,7 +588,7 @@ class GatewayService:
                     raise can.CanOperationError("the bus has no open socket")
                 poller.register(fd, select.POLLIN | select.POLLPRI)
             except Exception as exc:  # noqa: BLE001
-                retry_at[name] = time.monotonic() + self._failed(st, exc)
+                fail(name, st, exc)
                 return
             watched[fd], fd_of[name] = (name, bus, st), fd
             retry_at.pop(name, None)

@@ -772,23 +772,20 @@ class _Clock:
         if self.t0 is None:
             self.t0, self.wall0 = t_ns, time.monotonic()
             return not self.stop.is_set()
-        if self.rate > 0:
-            delay = self.wall0 + (t_ns - self.t0) / 1e9 / self.rate - time.monotonic()
-            if delay > _SLEEP_MIN_S:
-                return not self.stop.wait(delay)
+        delay = self.until(t_ns)
+        if delay > _SLEEP_MIN_S:
+            return not self.stop.wait(delay)
         return not self.stop.is_set()
 
     def until(self, t_ns: int) -> float:
-        """Seconds until log time ``t_ns`` is due (0 when not pacing or not started)."""
+        """Seconds until log time ``t_ns`` is due (negative: late; 0 when not pacing or not started)."""
         if self.rate <= 0 or self.t0 is None:
             return 0.0
         return self.wall0 + (t_ns - self.t0) / 1e9 / self.rate - time.monotonic()
 
     def late_us(self, t_ns: int) -> float:
         """How long after its due time log time ``t_ns`` is now (0 when not pacing)."""
-        if self.rate <= 0 or self.t0 is None:
-            return 0.0
-        return (time.monotonic() - self.wall0 - (t_ns - self.t0) / 1e9 / self.rate) * 1e6
+        return -self.until(t_ns) * 1e6
 
 
 READ_AHEAD = 4096              # live playback: messages read and decoded ahead, while waiting

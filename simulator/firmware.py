@@ -500,8 +500,9 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
     than ``k`` ms after the start on the monotonic clock, and each frame is stamped with the
     wall clock (``time.time()``, python-can's time base) when it is sent; a step that falls
     behind is sent at once (no catch-up pause). The simulation runs up to
-    :data:`LOOKAHEAD_STEPS` ahead of the wire, so one slow step does not delay the sends. ``on_step(readings)`` runs after each step's
-    frames went out. Frames still held by a reorder fault are sent at the end.
+    :data:`LOOKAHEAD_STEPS` ahead of the wire, so one slow step does not delay the sends.
+    ``on_step(readings)`` runs after each step's frames went out. Frames still held by a reorder
+    fault are sent at the end.
 
     In real time the firmware's :attr:`Firmware.pacing` says how late the steps went out (a
     :class:`Pacing`): a receiver that stamps frames on arrival (SocketCAN, udp_multicast) sees

@@ -130,8 +130,7 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
 def _live_can(args: argparse.Namespace, can_ids) -> int:
     import contextlib
 
-    from gateway.commands import stop_on_sigterm
-    from gateway.commands import set_rt_priority
+    from gateway.commands import set_rt_priority, stop_on_sigterm
     from gateway.commands.gateway import channels, open_can
     from gateway.replay import play_can, read_context, readable
 
