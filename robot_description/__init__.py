@@ -14,6 +14,8 @@ Arms are found from the links, not from a count: any number of arms with any num
 """
 from __future__ import annotations
 
+import math
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +33,13 @@ IMU_FRAME = "imu"
 
 class DescriptionError(ValueError):
     """The URDF cannot be read, or does not follow the bsc robot convention."""
+
+
+class PhysicalValueError(DescriptionError):
+    """A number in the URDF that no physical robot has: a missing or non-positive mass, an
+    inertia that is not positive definite or breaks the triangle inequality, a non-finite
+    origin, a zero joint axis, a non-positive torque limit. The message names the link or joint,
+    the file and the fix."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,16 +126,150 @@ def load(robot: str | Path | None = None) -> Robot:
     """Read a convention-following URDF (built-in name or path) into a :class:`Robot`."""
     path = resolve(robot)
     text = path.read_text()
-    return from_urdf_text(text, name=path.stem)
+    return from_urdf_text(text, name=path.stem, source=path.name if str(robot) in BUILTIN else str(path))
 
 
-def from_urdf_text(text: str, name: str = "robot") -> Robot:
+def from_urdf_text(text: str, name: str = "robot", source: str | None = None) -> Robot:
+    """A :class:`Robot` from URDF text; ``source`` names it in error messages (default
+    ``<name>.urdf``)."""
+    source = source or f"{name}.urdf"
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise DescriptionError(f"cannot parse URDF {source}: {exc}") from exc
+    # Checked before Pinocchio sees the file: its URDF parser drops an <inertial> it cannot
+    # read (the link becomes massless) and accepts a zero axis as z, negative masses and
+    # impossible inertias, all of which surface later as NaN in the dynamics.
+    _check_values(root, source)
     try:
         model = pin.buildModelFromXML(text, pin.JointModelFreeFlyer())
     except (RuntimeError, ValueError) as exc:
-        raise DescriptionError(f"cannot parse URDF {name}: {exc}") from exc
+        raise DescriptionError(f"cannot parse URDF {source}: {exc}") from exc
     model.gravity.linear[:] = 0.0     # orbit: gravity gradient neglected, accelerometers read 0 g
+    _check_masses(model, root, source)
     return _interpret(model, text, name)
+
+
+# -- physical values -------------------------------------------------------------------------
+# Principal moments may break the triangle inequality by this fraction of the largest one:
+# a thin rod (Ixx ~ 0, Iyy = Izz) sits on the bound, and exported CAD values are rounded.
+TRIANGLE_TOLERANCE = 1e-6
+_INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+
+
+def _numbers(text: str | None, n: int) -> list[float] | None:
+    """``n`` finite numbers from a URDF attribute (space separated), or None."""
+    try:
+        xs = [float(x) for x in (text or "").split()]
+    except ValueError:
+        return None
+    return xs if len(xs) == n and all(math.isfinite(x) for x in xs) else None
+
+
+def _check_origin(el: ET.Element | None, what: str, where: str) -> None:
+    if el is None:
+        return
+    for attr in ("xyz", "rpy"):
+        value = el.get(attr)
+        if value is not None and _numbers(value, 3) is None:
+            raise PhysicalValueError(f"{what}: {where}<origin {attr}=\"{value}\"> must be 3 finite numbers")
+
+
+def _check_values(root: ET.Element, source: str) -> None:
+    """Every number that reaches the dynamics: inertials, origins, joint axes and limits."""
+    moved = {j.find("child").get("link") for j in root.findall("joint")
+             if j.get("type") != "fixed" and j.find("child") is not None}
+    for link in root.findall("link"):
+        what = f"link {link.get('name')!r} in {source}"
+        for tag in ("visual", "collision"):
+            for el in link.iter(tag):
+                _check_origin(el.find("origin"), what, f"<{tag}>")
+        inertial = link.find("inertial")
+        if inertial is None:
+            continue
+        # a link a joint moves needs its mass; any other may be massless (no <inertial>)
+        fix = ("set <mass value=...> to the link's mass in kg" if link.get("name") in moved else
+               "set <mass value=...> to the link's mass in kg, or remove the <inertial> of a massless link")
+        _check_origin(inertial.find("origin"), what, "<inertial>")
+        mass_el = inertial.find("mass")
+        value = None if mass_el is None else mass_el.get("value")
+        if value is None:
+            raise PhysicalValueError(f"{what}: <inertial> has no <mass value=...> ({fix})")
+        mass = _numbers(value, 1)
+        if mass is None:
+            raise PhysicalValueError(f"{what}: mass \"{value}\" must be a finite number of kg")
+        if mass[0] <= 0.0:
+            raise PhysicalValueError(f"{what}: mass {mass[0]:g} kg must be positive ({fix})")
+        inertia_el = inertial.find("inertia")
+        if inertia_el is None:
+            raise PhysicalValueError(f"{what}: <inertial> has no <inertia ixx=... iyy=... izz=.../> (the "
+                                     "rotational inertia about the centre of mass, kg m^2)")
+        values = {}
+        for key in _INERTIA_KEYS:
+            x = _numbers(inertia_el.get(key), 1)
+            if x is None:
+                raise PhysicalValueError(f"{what}: <inertia {key}=\"{inertia_el.get(key)}\"> must be a finite "
+                                         "number of kg m^2 (all six of ixx ixy ixz iyy iyz izz)")
+            values[key] = x[0]
+        _check_inertia(values, what)
+    for joint in root.findall("joint"):
+        what = f"joint {joint.get('name')!r} in {source}"
+        _check_origin(joint.find("origin"), what, "")
+        kind = joint.get("type")
+        axis_el = joint.find("axis")
+        if kind in ("revolute", "continuous", "prismatic") and axis_el is not None:
+            axis = _numbers(axis_el.get("xyz"), 3)
+            if axis is None or math.hypot(*axis) < 1e-12:
+                raise PhysicalValueError(f"{what}: <axis xyz=\"{axis_el.get('xyz')}\"> must be a non-zero vector of "
+                                         "3 finite numbers (the direction the joint turns about, joint frame)")
+        limit = joint.find("limit")
+        if limit is None:
+            continue
+        for attr in ("lower", "upper", "effort", "velocity"):
+            value = limit.get(attr)
+            if value is not None and _numbers(value, 1) is None:
+                raise PhysicalValueError(f"{what}: <limit {attr}=\"{value}\"> must be a finite number")
+        effort = limit.get("effort")
+        if kind in ("revolute", "continuous", "prismatic") and effort is not None and float(effort) <= 0.0:
+            raise PhysicalValueError(f"{what}: <limit effort=\"{effort}\"> must be positive (the motor's torque "
+                                     "limit, N m; friction is a fraction of it)")
+
+
+def _check_inertia(values: dict[str, float], what: str) -> None:
+    I = np.array([[values["ixx"], values["ixy"], values["ixz"]],
+                  [values["ixy"], values["iyy"], values["iyz"]],
+                  [values["ixz"], values["iyz"], values["izz"]]])
+    moments = np.linalg.eigvalsh(I)       # ascending: the principal moments
+    a, b, c = moments.tolist()
+    if a <= 0.0:
+        raise PhysicalValueError(
+            f"{what}: rotational inertia is not positive definite (principal moments {a:.6g}, {b:.6g}, "
+            f"{c:.6g} kg m^2): ixx, iyy, izz must be positive and the products ixy, ixz, iyz small enough")
+    if a + b < c * (1.0 - TRIANGLE_TOLERANCE):
+        raise PhysicalValueError(
+            f"{what}: principal moments {a:.6g}, {b:.6g}, {c:.6g} kg m^2 break the triangle inequality "
+            f"({a:.6g} + {b:.6g} < {c:.6g}): no rigid body has them (the inertia is about the centre of "
+            "mass, in the <inertial><origin> frame; check ixx, iyy, izz)")
+
+
+def _check_masses(model: pin.Model, root: ET.Element, source: str) -> None:
+    """Every body that moves carries mass: a link with no <inertial> (and none fixed to it)
+    makes a joint of zero inertia, so the mass matrix is singular."""
+    children = {j.get("name"): j.find("child").get("link") for j in root.findall("joint")
+                if j.find("child") is not None}
+    roots = {link.get("name") for link in root.findall("link")} - set(children.values())
+    for j in range(1, model.njoints):
+        if model.inertias[j].mass > 0.0:
+            continue
+        if j == 1:
+            spacecraft = roots.pop() if len(roots) == 1 else "spacecraft"
+            raise PhysicalValueError(
+                f"link {spacecraft!r} in {source}: the spacecraft (root link) has no mass (add an <inertial> "
+                "with <mass value=...> and <inertia .../> about its centre of mass)")
+        link = children.get(model.names[j], model.names[j])
+        raise PhysicalValueError(
+            f"link {link!r} in {source}: no mass, yet joint {model.names[j]!r} moves it (add an <inertial> "
+            "with <mass value=...> and <inertia .../>)")
 
 
 def _frame(model: pin.Model, name: str) -> int | None:
@@ -148,8 +291,6 @@ def _interpret(model: pin.Model, text: str, name: str) -> Robot:
     if model.njoints < 2 or model.joints[1].shortname() != "JointModelFreeFlyer":
         raise DescriptionError(f"{name}: the root must be the spacecraft on a free-flyer joint")
     base = model.inertias[1]
-    if base.mass <= 0:
-        raise DescriptionError(f"{name}: the spacecraft (root link) needs a positive mass")
     if np.linalg.norm(base.lever) > 1e-9:
         raise DescriptionError(
             f"{name}: the spacecraft link origin must be its centre of mass (inertial origin "

@@ -1,6 +1,9 @@
 """The URDF convention: any number of arms and joints, clear errors otherwise."""
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -45,3 +48,85 @@ def test_convention_violations_are_named(edit, match):
 def test_unknown_robot_is_a_clear_error():
     with pytest.raises(rd.DescriptionError, match="no such robot"):
         rd.load("no_such_robot")
+
+
+# One field of the paper robot's URDF broken at a time. The first occurrences are arm0's:
+# <mass value="100"/> and ixx="5.3" are arm0_link2's, <axis> is arm0_j1's, effort="300" arm0_j2's.
+_LINK2_INERTIAL = ('    <inertial>\n      <origin xyz="1.5 0 0" rpy="0 0 0"/>\n      <mass value="100"/>\n'
+                   '      <inertia ixx="5.3" ixy="0" ixz="0" iyy="106" iyz="0" izz="106"/>\n    </inertial>\n')
+BAD_URDFS = {
+    "no inertial": (lambda t: t.replace(_LINK2_INERTIAL, "", 1),
+                    "link 'arm0_link2' in {f}: no mass, yet joint 'arm0_j2' moves it (add an <inertial>"),
+    "negative mass": (lambda t: t.replace('<mass value="100"/>', '<mass value="-3"/>', 1),
+                      "link 'arm0_link2' in {f}: mass -3 kg must be positive (set <mass value=...>"),
+    "zero mass": (lambda t: t.replace('<mass value="100"/>', '<mass value="0"/>', 1),
+                  "link 'arm0_link2' in {f}: mass 0 kg must be positive"),
+    "NaN mass": (lambda t: t.replace('<mass value="100"/>', '<mass value="nan"/>', 1),
+                 "link 'arm0_link2' in {f}: mass \"nan\" must be a finite number of kg"),
+    "mass without value": (lambda t: t.replace('<mass value="100"/>', '<mass/>', 1),
+                           "link 'arm0_link2' in {f}: <inertial> has no <mass value=...>"),
+    "infinite inertia": (lambda t: t.replace('ixx="5.3"', 'ixx="inf"', 1),
+                         "link 'arm0_link2' in {f}: <inertia ixx=\"inf\"> must be a finite number"),
+    "negative moment": (lambda t: t.replace('iyy="106" iyz="0" izz="106"', 'iyy="-106" iyz="0" izz="106"', 1),
+                        "link 'arm0_link2' in {f}: rotational inertia is not positive definite"),
+    "products too large": (lambda t: t.replace('ixx="5.3" ixy="0"', 'ixx="5.3" ixy="50"', 1),
+                           "link 'arm0_link2' in {f}: rotational inertia is not positive definite"),
+    "triangle inequality": (lambda t: t.replace('iyy="106" iyz="0" izz="106"', 'iyy="10" iyz="0" izz="106"', 1),
+                            "link 'arm0_link2' in {f}: principal moments 5.3, 10, 106 kg m^2 break the triangle"),
+    "inertial origin": (lambda t: t.replace('<origin xyz="1.5 0 0"', '<origin xyz="1.5 0 inf"', 1),
+                        "link 'arm0_link2' in {f}: <inertial><origin xyz=\"1.5 0 inf\"> must be 3 finite numbers"),
+    "joint origin": (lambda t: t.replace('<origin xyz="4 0 0"', '<origin xyz="4 nan 0"', 1),
+                     "joint 'arm0_j2' in {f}: <origin xyz=\"4 nan 0\"> must be 3 finite numbers"),
+    "zero axis": (lambda t: t.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>', 1),
+                  "joint 'arm0_j1' in {f}: <axis xyz=\"0 0 0\"> must be a non-zero vector"),
+    "NaN axis": (lambda t: t.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 nan 1"/>', 1),
+                 "joint 'arm0_j1' in {f}: <axis xyz=\"0 nan 1\"> must be a non-zero vector"),
+    "negative torque limit": (lambda t: t.replace('effort="300"', 'effort="-300"', 1),
+                              "joint 'arm0_j2' in {f}: <limit effort=\"-300\"> must be positive"),
+    "massless spacecraft": (lambda t: t.replace(
+        '    <inertial>\n      <origin xyz="0 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>\n'
+        '      <inertia ixx="3446" ixy="0" ixz="0" iyy="3446" iyz="0" izz="5808"/>\n    </inertial>\n', "", 1),
+        "link 'spacecraft' in {f}: the spacecraft (root link) has no mass"),
+}
+
+
+def _bad_urdf(tmp_path, case):
+    edit, message = BAD_URDFS[case]
+    text = urdf_text(PAPER)
+    broken = edit(text)
+    assert broken != text, "the edit must break something"
+    path = tmp_path / "my_robot.urdf"
+    path.write_text(broken)
+    return path, message.format(f=path)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_URDFS))
+def test_unphysical_links_are_named_with_their_fix(tmp_path, case):
+    path, message = _bad_urdf(tmp_path, case)
+    with pytest.raises(rd.PhysicalValueError) as err:
+        rd.load(path)
+    assert message in str(err.value)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_URDFS))
+def test_bsc_sim_reports_an_unphysical_robot_in_one_line(tmp_path, case):
+    path, message = _bad_urdf(tmp_path, case)
+    r = subprocess.run([sys.executable, "-m", "gateway.cli", "sim", "--robot", str(path), "--duration", "0.01",
+                        "--out", str(tmp_path / "out"), "--quiet", "--no-plots", "--no-compare"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.startswith("bsc sim: error: ") and message in r.stderr, r.stderr
+
+
+def test_a_thin_rod_on_the_triangle_bound_is_accepted():
+    """Principal moments a + b = c (a thin rod) are physical; rounding just past it is tolerated."""
+    text = urdf_text(PAPER).replace('ixx="5.3" ixy="0" ixz="0" iyy="106" iyz="0" izz="106"',
+                                    'ixx="0.0001" ixy="0" ixz="0" iyy="106" iyz="0" izz="106.0002"', 1)
+    robot = rd.from_urdf_text(text)
+    assert robot.model.inertias[robot.arms[0].joints[1]].inertia[2, 2] == pytest.approx(106.0002)
+
+
+def test_messages_name_the_file_given():
+    with pytest.raises(rd.PhysicalValueError, match=r"in paper_robot\.urdf:"):
+        rd.from_urdf_text(urdf_text(PAPER).replace('<mass value="100"/>', '<mass value="-3"/>', 1), name="paper_robot")
