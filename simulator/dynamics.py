@@ -16,13 +16,32 @@ One call of :meth:`Dynamics.step` advances the state by ``dt`` under inputs held
   The candidate test needs the diagonal of the inverse mass matrix; a constant upper bound of
   it (:func:`minv_diagonal_bound`) rules most steps out without computing it, with the same
   result.
+
+A state that stops being finite (NaN or infinity, from an unphysical robot or input) raises
+:class:`DivergenceError` at the step that produced it, naming what diverged; the state is left
+at the start of that step.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+
+
+class DivergenceError(ValueError):
+    """The simulated state stopped being finite: ``what`` names the quantities (and whether NaN
+    or infinite), ``t_s`` the simulated time of the state, when known."""
+
+    def __init__(self, what: str, t_s: float | None = None):
+        self.what, self.t_s = what, t_s
+        at = "" if t_s is None else f" at t = {t_s:.3f} s"
+        super().__init__(f"simulation diverged{at}: {what} (check the robot's inertias and the controller gains)")
+
+    def at(self, t_s: float) -> "DivergenceError":
+        """The same error, stamped with the simulated time of the state."""
+        return DivergenceError(self.what, t_s)
 
 
 @dataclass
@@ -48,8 +67,13 @@ class Dynamics:
     for ``(q, v, a)`` with the returned acceleration (the truth of the F/T sensors).
     """
 
-    def __init__(self, model: pin.Model, friction: Friction, dt: float):
+    def __init__(self, model: pin.Model, friction: Friction, dt: float,
+                 joint_names: list[str] | None = None):
         self.model, self.data = model, model.createData()
+        # names of the actuated joints in v order, for error messages (default: the URDF's)
+        self.joint_names = list(joint_names) if joint_names is not None else [
+            model.names[j] for j in range(2, model.njoints) if model.joints[j].idx_v >= 6
+            for _ in range(model.joints[j].nv)]
         self.data_start = model.createData()
         self.dt = dt
         self._reach = 1.5 * dt          # a joint this close (in time) to stopping may stick
@@ -118,9 +142,48 @@ class Dynamics:
         k4v = aba(model, data, integrate(model, q0, th), v4, tau)
         # (dt/6) (k1 + 2 k2 + 2 k3 + k4) for theta and v at once
         rates = self._weights.dot(np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v)))
+        v = v0 + rates[1]
+        # every stage feeds v, so a finite v means a finite step; one dot product, not a scan
+        if not math.isfinite(v.dot(v)):
+            raise self._divergence(tau, v)
         self.q = integrate(model, q0, rates[0])        # (indexing: unpacking a 2-row array costs more)
-        self.v = v0 + rates[1]
+        self.v = v
         return a1
+
+    def _divergence(self, tau: np.ndarray, v: np.ndarray) -> DivergenceError:
+        """What went non-finite: the inputs if they were (the cause), else the velocities."""
+        names = ["the thruster force"] * 3 + ["the thruster moment"] * 3 + [
+            f"the motor torque of joint {n}" for n in self.joint_names]
+        x = tau
+        if all(math.isfinite(e) for e in tau.tolist()):
+            names = ["spacecraft linear velocity"] * 3 + ["spacecraft angular velocity"] * 3 + [
+                f"joint {n} velocity" for n in self.joint_names]
+            x = v
+        values = x.tolist()
+        bad = [i for i, e in enumerate(values) if not math.isfinite(e)]
+        kind = "NaN" if any(math.isnan(values[i]) for i in bad) else "infinite"
+        if x is v and len(bad) == len(values):
+            what = f"every velocity (spacecraft and joints) is {kind}"
+        else:
+            items = list(dict.fromkeys(names[i] for i in bad))      # in order, once each
+            what = f"{', '.join(items)} {'is' if len(items) == 1 else 'are'} {kind}"
+        return DivergenceError(what + "".join(f"; {s}" for s in self._suspect_bodies()))
+
+    def _suspect_bodies(self) -> list[str]:
+        """Bodies whose mass or rotational inertia no rigid body has (the usual cause)."""
+        out = []
+        model = self.model
+        for j in range(1, model.njoints):
+            Y = model.inertias[j]
+            body = "the spacecraft" if j == 1 else f"the body joint {self.joint_names[model.joints[j].idx_v - 6]} moves"
+            I = np.array(Y.inertia)
+            if not (math.isfinite(Y.mass) and np.isfinite(I).all()):
+                out.append(f"{body} has a non-finite mass or inertia")
+            elif Y.mass <= 0.0:
+                out.append(f"{body} has mass {Y.mass:g} kg")
+            elif np.linalg.eigvalsh(I).min() < 0.0:
+                out.append(f"{body} has an inertia that is not positive semi-definite")
+        return out
 
     # -- friction ---------------------------------------------------------------------------
     def _friction_torques(self, tau_applied: np.ndarray) -> np.ndarray:

@@ -30,7 +30,7 @@ import robot_description
 from robot_description import Robot
 
 from .controller import Controller, Target, pregrasp_ik
-from .dynamics import Dynamics, Friction
+from .dynamics import DivergenceError, Dynamics, Friction
 from .scenario import Scenario
 from .sensors import Encoders, ForceTorqueSensors, Imu, cross_rows
 from .thrusters import PWPFM, Allocator, Layout, ThrusterErrors
@@ -85,7 +85,7 @@ class Simulation:
         rng = [np.random.default_rng(s) for s in seeds]
 
         self.friction_enabled = friction
-        self.dyn = Dynamics(r.model, friction_from(r, cfg.friction, friction), DT_S)
+        self.dyn = Dynamics(r.model, friction_from(r, cfg.friction, friction), DT_S, r.joint_names)
         self._base_coulomb = self.dyn.friction.coulomb_nm.copy()
         q = r.neutral()
         init = cfg.controller.initial_q_deg
@@ -234,7 +234,10 @@ class Simulation:
         if j == 0:
             self._base_control(k, q, v)
 
-        a = dyn.step(self._wrench_chunk[j], self.tau_cmd)
+        try:
+            a = dyn.step(self._wrench_chunk[j], self.tau_cmd)
+        except DivergenceError as exc:
+            raise exc.at((k + 1) * DT_S) from None
 
         Aq, Av, Aa, Atf, Ast = self._rows
         Aq[k] = q
