@@ -8,7 +8,12 @@ mask on the wire is thruster i of the layout.
 
 A layout is a named table here, or a TOML file with ``[[thruster]]`` tables
 (``pos_m = [x, y, z]``, ``dir = [x, y, z]``, optional ``max_thrust_n``), or a scenario's
-``[thrusters]`` namespace (``layout = NAME`` or ``[[thrusters.custom]]``).
+``[thrusters]`` table (``layout = NAME`` or ``[[thrusters.custom]]`` rows of the same keys).
+Every row is checked and a bad one named with its field: positions finite, directions non-zero
+and finite (then normalised: ``dir`` gives only the direction, ``max_thrust_n`` the magnitude),
+thrust positive. Whether a layout can control all six axes is a separate question
+(:meth:`ThrusterLayout.uncontrollable`): the gateway estimates any layout's wrench, the
+simulator's flight software needs all six.
 """
 from __future__ import annotations
 
@@ -39,9 +44,11 @@ LAYOUTS: dict[str, list[tuple[float, ...]]] = {
         (0.0, -2.1, 1.0, 0.0, 0.0, -1.0), (0.0, -2.1, -1.0, 0.0, 0.0, 1.0),
     ],
 }
-DEFAULT_LAYOUT = "ring18"
+DEFAULT_LAYOUT = "ring18"             # the scenario defaults (simulator/scenarios/capture.toml)
 DEFAULT_MAX_THRUST_N = 100.0
 MAX_THRUSTERS = 32                    # bits of the valve mask on the wire
+ROW_KEYS = ("pos_m", "dir", "max_thrust_n")
+AXES = ("force x", "force y", "force z", "moment x", "moment y", "moment z")
 
 
 class ThrusterLayoutError(ValueError):
@@ -94,18 +101,74 @@ class ThrusterLayout:
         return cls.from_rows(rows, [max_thrust_n] * len(rows))
 
     @classmethod
+    def from_table(cls, rows, max_thrust_n: float = DEFAULT_MAX_THRUST_N,
+                   where: str = "thrusters.custom") -> "ThrusterLayout":
+        """From rows ``{pos_m, dir, max_thrust_n (optional, default max_thrust_n)}`` (TOML
+        tables); errors name the row as ``where[i]`` (i: the thruster's index, its valve bit)."""
+        if not isinstance(rows, list) or not 1 <= len(rows) <= MAX_THRUSTERS:
+            n = len(rows) if isinstance(rows, list) else "no"
+            raise ThrusterLayoutError(f"{where}: {n} rows; a layout has 1..{MAX_THRUSTERS} thrusters "
+                                      "(the valve mask on the wire has 32 bits)")
+        pos, dirs, maxes = [], [], []
+        for i, row in enumerate(rows):
+            at = f"{where}[{i}]"
+            if not isinstance(row, dict):
+                raise ThrusterLayoutError(f"{at}: must be a table with pos_m, dir and optional max_thrust_n, got {row!r}")
+            for key in row:
+                if key not in ROW_KEYS:
+                    raise ThrusterLayoutError(f"{at}: unknown key {key!r} (a thruster has pos_m, dir, max_thrust_n)")
+            for key in ROW_KEYS[:2]:
+                if key not in row:
+                    raise ThrusterLayoutError(f"{at}: missing key {key!r}")
+            p = _vector(row["pos_m"])
+            if p is None:
+                raise ThrusterLayoutError(f"{at}: pos_m must be 3 finite numbers [x, y, z] (m, body frame, from the "
+                                          f"centre of mass C), got {row['pos_m']!r}")
+            d = _vector(row["dir"])
+            norm = 0.0 if d is None else math.sqrt(sum(x * x for x in d))
+            if d is None or norm < 1e-9:
+                raise ThrusterLayoutError(f"{at}: dir must be a non-zero vector of 3 finite numbers (the direction of "
+                                          f"the force on the spacecraft, body frame), got {row['dir']!r}")
+            m = row.get("max_thrust_n", max_thrust_n)
+            if not _positive(m):
+                raise ThrusterLayoutError(f"{at}: max_thrust_n must be a positive number of N, got {m!r}")
+            pos.append(p)
+            dirs.append([x / norm for x in d])
+            maxes.append(float(m))
+        return cls(np.array(pos), np.array(dirs), np.array(maxes))
+
+    @classmethod
     def from_config(cls, cfg) -> "ThrusterLayout":
-        """From a scenario's ``[thrusters]`` namespace (``layout``, ``max_thrust_n``, optional ``custom``)."""
-        custom = getattr(cfg, "custom", None)
-        if custom:
-            rows = [tuple(t.pos_m) + tuple(t.dir) for t in custom]
-            maxes = [float(getattr(t, "max_thrust_n", cfg.max_thrust_n)) for t in custom]
-            return cls.from_rows(rows, maxes)
-        return cls.named(cfg.layout, float(cfg.max_thrust_n))
+        """From a scenario's ``[thrusters]`` table, as a dict or a namespace (``layout``,
+        ``max_thrust_n``, optional ``custom`` rows, which replace the named layout)."""
+        table = cfg if isinstance(cfg, dict) else vars(cfg)
+        max_n = table.get("max_thrust_n", DEFAULT_MAX_THRUST_N)
+        if not _positive(max_n):
+            raise ThrusterLayoutError(f"thrusters.max_thrust_n must be a positive number of N, got {max_n!r}")
+        if "custom" in table:
+            rows = table["custom"]
+            if isinstance(rows, list):
+                rows = [vars(r) if hasattr(r, "__dict__") else r for r in rows]
+            return cls.from_table(rows, float(max_n), "thrusters.custom")
+        return cls.named(table.get("layout", DEFAULT_LAYOUT), float(max_n))
+
+    @classmethod
+    def from_scenario_text(cls, text: str, source: str = "scenario") -> "ThrusterLayout":
+        """The layout of a scenario file's text (as logs carry it): its ``[thrusters]`` table,
+        the default ring18 at 100 N where it says nothing."""
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ThrusterLayoutError(f"{source}: not valid TOML: {exc}") from None
+        table = data.get("thrusters", {})
+        if not isinstance(table, dict):
+            raise ThrusterLayoutError(f"{source}: 'thrusters' must be a table")
+        return cls.from_config(table)
 
     @classmethod
     def load(cls, spec: str | Path | None = None, max_thrust_n: float = DEFAULT_MAX_THRUST_N) -> "ThrusterLayout":
-        """A layout by name (``ring18``) or from a TOML file of ``[[thruster]]`` tables."""
+        """A layout by name (``ring18``), or from a TOML file: ``[[thruster]]`` rows, or a
+        scenario with a ``[thrusters]`` table."""
         if spec is None:
             return cls.named(DEFAULT_LAYOUT, max_thrust_n)
         if str(spec) in LAYOUTS:
@@ -116,8 +179,44 @@ class ThrusterLayout:
                                       "nor a file")
         try:
             data = tomllib.loads(path.read_text())
-            rows = [tuple(t["pos_m"]) + tuple(t["dir"]) for t in data["thruster"]]
-            maxes = [float(t.get("max_thrust_n", data.get("max_thrust_n", max_thrust_n))) for t in data["thruster"]]
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, KeyError, TypeError) as exc:
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise ThrusterLayoutError(f"{path}: not a thruster layout file ({exc})") from None
-        return cls.from_rows(rows, maxes)
+        try:
+            if "thruster" in data:
+                return cls.from_table(data["thruster"], data.get("max_thrust_n", max_thrust_n), "thruster")
+            if isinstance(data.get("thrusters"), dict):
+                return cls.from_config(data["thrusters"])
+        except ThrusterLayoutError as exc:
+            raise ThrusterLayoutError(f"{path}: {exc}") from None
+        raise ThrusterLayoutError(f"{path}: not a thruster layout file (no [[thruster]] rows, no [thrusters] table)")
+
+    def uncontrollable(self) -> list[str]:
+        """The body-wrench directions (``+force x`` ... ``-moment z``) that no combination of
+        thrusts produces. Thrust only pushes (u >= 0), so controlling all six axes takes at
+        least 7 thrusters whose wrenches positively span R^6; empty when they do."""
+        from scipy.optimize import nnls
+
+        B = self.B * self.max_n
+        out = []
+        for k, axis in enumerate(AXES):
+            for sign in (1.0, -1.0):
+                e = np.zeros(6)
+                e[k] = sign * float(np.abs(B[k]).max(initial=0.0) or 1.0)
+                _, resid = nnls(B, e)
+                if resid > 1e-6 * abs(e[k]):
+                    out.append(f"{'+' if sign > 0 else '-'}{axis}")
+        return out
+
+
+def _positive(x) -> bool:
+    """A positive finite number (a TOML boolean is not one)."""
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def _vector(value) -> list[float] | None:
+    """3 finite numbers (not booleans) from a TOML value, or None."""
+    if not isinstance(value, list) or len(value) != 3:
+        return None
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in value):
+        return None
+    return [float(x) for x in value]

@@ -24,7 +24,10 @@ DEGRADE_KINDS = {
 }
 # keys whose value is a free-form table (not checked against the default)
 # (the default file may leave them out); ``faults`` is checked by simulator.firmware.Faults
-FREE_TABLES = {"friction.per_joint", "thrusters.custom", "thrusters.pwpfm", "faults"}
+FREE_TABLES = {"friction.per_joint", "thrusters.pwpfm", "faults"}
+# keys whose value is an array of tables ([[...]] rows); thrusters.custom is checked row by row
+# by robot_description.thrusters, which the gateway shares
+ARRAYS_OF_TABLES = {"thrusters.custom"}
 
 
 class ScenarioError(ValueError):
@@ -84,12 +87,17 @@ def load(scenario: str | Path | None = None, overrides: dict | None = None) -> S
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
+    thrusters = user.get("thrusters")
+    if isinstance(thrusters, dict) and "custom" in thrusters and "layout" in thrusters:
+        raise ScenarioError(f"{path}: [thrusters] has both layout = {thrusters['layout']!r} and "
+                            "[[thrusters.custom]] rows; give one")
     data = _merge(_defaults(), user, "")
     # A file placed next to a custom URDF may name it relatively.
     robot = data.get("robot", "")
     if robot.endswith(".urdf") and not Path(robot).is_absolute():
         data["robot"] = str((path.parent / robot).resolve())
-    data.setdefault("name", path.stem)
+    if "name" not in user:              # (the default file's name is "capture")
+        data["name"] = path.stem
     sc = _build(str(data.get("name") or path.stem), text, data)
     return sc.replace(**overrides) if overrides else sc
 
@@ -101,7 +109,11 @@ def _merge(base: dict, user: dict, where: str) -> dict:
         if key == "degrade" and not where:
             out[key] = value
             continue
-        if dotted in FREE_TABLES:
+        if dotted in ARRAYS_OF_TABLES:
+            if not isinstance(value, list) or not all(isinstance(row, dict) for row in value):
+                raise ScenarioError(f"scenario key {dotted!r} must be an array of tables ([[{dotted}]] rows)")
+            out[key] = value
+        elif dotted in FREE_TABLES:
             if not isinstance(value, dict):
                 raise ScenarioError(f"scenario key {dotted!r} must be a table")
             out[key] = value
@@ -152,8 +164,29 @@ def _ns(obj):
     return obj
 
 
+def _check_thrusters(table: dict) -> None:
+    """The layout's rows, and that it can push the spacecraft both ways along and about every
+    axis: the flight software holds the base's pose with the thrusters alone."""
+    from robot_description.thrusters import ThrusterLayout, ThrusterLayoutError
+
+    try:
+        layout = ThrusterLayout.from_config(table)
+    except ThrusterLayoutError as exc:
+        raise ScenarioError(str(exc)) from None
+    missing = layout.uncontrollable()
+    if not missing:
+        return
+    where = "thrusters.custom" if "custom" in table else f"thrusters.layout {table['layout']!r}"
+    if layout.n < 7:
+        raise ScenarioError(f"{where}: {layout.n} thruster(s) cannot control the spacecraft's 6 degrees of "
+                            "freedom: thrust only pushes, so it takes at least 7 (ring18 has 18)")
+    raise ScenarioError(f"{where}: no combination of the {layout.n} thrusters gives {', '.join(missing)} (thrust "
+                        "only pushes: every axis needs thrusters pushing each way, for force and for moment)")
+
+
 def _build(name: str, text: str, data: dict) -> Scenario:
     _check_degrade(data.get("degrade", []))
+    _check_thrusters(data["thrusters"])
     if data["duration_s"] <= 0:
         raise ScenarioError("duration_s must be positive")
     if "faults" in data:
