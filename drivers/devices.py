@@ -23,7 +23,7 @@ from typing import Callable, Iterable
 import can
 
 from drivers import frames, wire
-from drivers.health import BusCounters, DeviceCounters
+from drivers.health import DEFAULT_TIMING, BusCounters, DeviceCounters, SourceTiming
 from drivers.samples import BusHealth, DeviceHealth, Sample
 
 log = logging.getLogger(__name__)
@@ -125,10 +125,10 @@ def _period_ns(kind: str, frame_id: int) -> int:
 class FtDriver(Driver):
     """The six-axis F/T sensor of one arm (``FT_SG_A`` + ``FT_SG_B``) -> :class:`WrenchSample`."""
 
-    def __init__(self, arm: str, sink: Sink, fd: bool = False, stale_periods: int = 10):
+    def __init__(self, arm: str, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         super().__init__(arm, sink, fd)
         self.device = arm
-        self.dev = DeviceCounters(arm, arm, _period_ns("arm", wire.FT_A_ID), wire.FT_FAULT, stale_periods)
+        self.dev = DeviceCounters(arm, arm, _period_ns("arm", wire.FT_A_ID), wire.FT_FAULT, timing)
         self._asm = _Assembler(2)
         for i in frames.FT_PARTS:
             self._route[i] = (wire.layouts("arm")[i], self.dev, self._part)
@@ -145,7 +145,8 @@ class FtDriver(Driver):
 class JointDriver(Driver):
     """The joint drives of one arm (``JOINT_STATE_J<j>``) -> :class:`JointSample` per joint."""
 
-    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False, stale_periods: int = 10):
+    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False,
+                 timing: SourceTiming = DEFAULT_TIMING):
         super().__init__(arm, sink, fd)
         self.devices = [f"{arm}/{j}" for j in joints]
         if len(self.devices) > wire.MAX_JOINTS:
@@ -153,7 +154,7 @@ class JointDriver(Driver):
         lays = wire.layouts("arm")
         for k, name in enumerate(self.devices):
             i = wire.JOINT_STATE_BASE + k
-            dev = DeviceCounters(name, arm, _period_ns("arm", i), wire.DRIVE_FAULT, stale_periods)
+            dev = DeviceCounters(name, arm, _period_ns("arm", i), wire.DRIVE_FAULT, timing)
             self._route[i] = (lays[i], dev, self._make(name, dev))
 
     def _make(self, name: str, dev: DeviceCounters):
@@ -171,7 +172,8 @@ class TorqueCommandDriver(Driver):
     when the arm has more than 3 joints).
     """
 
-    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False, stale_periods: int = 10):
+    def __init__(self, arm: str, joints: Iterable[str], sink: Sink, fd: bool = False,
+                 timing: SourceTiming = DEFAULT_TIMING):
         super().__init__(arm, sink, fd)
         names = [f"{arm}/{j}" for j in joints]
         lays = wire.layouts("arm")
@@ -181,7 +183,7 @@ class TorqueCommandDriver(Driver):
             slots = names[g * wire.CMD_GROUP:(g + 1) * wire.CMD_GROUP]
             slots += [None] * (wire.CMD_GROUP - len(slots))
             dname = f"{arm}/torque_cmd" + (f"/{g}" if ngroups > 1 else "")
-            dev = DeviceCounters(dname, arm, _period_ns("arm", i), 0, stale_periods)
+            dev = DeviceCounters(dname, arm, _period_ns("arm", i), 0, timing)
             self._route[i] = (lays[i], dev, self._make(slots, dev))
 
     def _make(self, slots, dev: DeviceCounters):
@@ -197,11 +199,11 @@ class TorqueCommandDriver(Driver):
 class _MultiFrameDriver(Driver):
     _parts: tuple[int, ...] = ()
 
-    def __init__(self, device: str, sink: Sink, fd: bool, stale_periods: int, fault_mask: int):
+    def __init__(self, device: str, sink: Sink, fd: bool, timing: SourceTiming, fault_mask: int):
         super().__init__(wire.SPACECRAFT_BUS, sink, fd)
         self.device = device
         lays = wire.layouts("spacecraft")
-        self.dev = DeviceCounters(device, self.bus, _period_ns("spacecraft", self._parts[0]), fault_mask, stale_periods)
+        self.dev = DeviceCounters(device, self.bus, _period_ns("spacecraft", self._parts[0]), fault_mask, timing)
         self._asm = _Assembler(len(self._parts))
         for i in self._parts:
             self._route[i] = (lays[i], self.dev, self._part)
@@ -214,8 +216,12 @@ class _MultiFrameDriver(Driver):
         if parts is None:
             return
         s = self._decode(parts, self._asm.first_ns)
-        if self.dev.admit(s.counter, s.t_ns, s.saturated, getattr(s, "status", 0)):
+        if self.dev.admit(s.counter, s.t_ns, s.saturated, getattr(s, "status", 0), self._device_ns(parts)):
             self.sink(s)
+
+    def _device_ns(self, parts: dict[int, bytes]) -> int | None:
+        """The device's own sample time (ns, modulo its clock's wrap), when its frames carry one."""
+        return None
 
 
 class ImuDriver(_MultiFrameDriver):
@@ -223,11 +229,15 @@ class ImuDriver(_MultiFrameDriver):
 
     _parts = frames.IMU_PARTS
 
-    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
-        super().__init__("imu", sink, fd, stale_periods, wire.IMU_FAULT)
+    def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
+        super().__init__("imu", sink, fd, timing, wire.IMU_FAULT)
 
     def _decode(self, parts, t_ns):
         return frames.decode_imu(parts, t_ns)
+
+    def _device_ns(self, parts):
+        # IMU_SAMPLE_TIME: ctr u8, time_us u32 big-endian (the IMU's clock; exact loss counts)
+        return int.from_bytes(parts[wire.IMU_TIME_ID][1:5], "big") * 1000
 
 
 class ThrusterCommandDriver(_MultiFrameDriver):
@@ -235,8 +245,8 @@ class ThrusterCommandDriver(_MultiFrameDriver):
 
     _parts = frames.THRUSTER_PARTS
 
-    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
-        super().__init__("thrusters", sink, fd, stale_periods, 0)
+    def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
+        super().__init__("thrusters", sink, fd, timing, 0)
 
     def _decode(self, parts, t_ns):
         return frames.decode_thruster(parts, t_ns)
@@ -245,10 +255,10 @@ class ThrusterCommandDriver(_MultiFrameDriver):
 class ValveCommandDriver(Driver):
     """The 1 kHz valve commands of the PWPFM modulator (``THRUSTER_VALVE_CMD``) -> :class:`ValveCommand`."""
 
-    def __init__(self, sink: Sink, fd: bool = False, stale_periods: int = 10):
+    def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         super().__init__(wire.SPACECRAFT_BUS, sink, fd)
         self.device = "valves"
-        self.dev = DeviceCounters("valves", self.bus, _period_ns("spacecraft", wire.VALVE_CMD_ID), 0, stale_periods)
+        self.dev = DeviceCounters("valves", self.bus, _period_ns("spacecraft", wire.VALVE_CMD_ID), 0, timing)
         self._route[wire.VALVE_CMD_ID] = (wire.layouts("spacecraft")[wire.VALVE_CMD_ID], self.dev, self._frame)
 
     def _frame(self, msg: can.Message, data: bytes) -> None:
@@ -378,19 +388,20 @@ class BusDispatcher:
         handler(msg, bytes(data))
 
 
-def drivers_for(spec: wire.BusSpec, sink: Sink, fd: bool = False, stale_periods: int = 10) -> list[Driver]:
+def drivers_for(spec: wire.BusSpec, sink: Sink, fd: bool = False,
+                timing: SourceTiming = DEFAULT_TIMING) -> list[Driver]:
     """The device drivers for one bus of a :class:`~drivers.wire.WireMap`."""
     if spec.kind == "arm":
-        return [FtDriver(spec.arm, sink, fd, stale_periods),
-                JointDriver(spec.arm, spec.joints, sink, fd, stale_periods),
-                TorqueCommandDriver(spec.arm, spec.joints, sink, fd, stale_periods)]
-    return [ImuDriver(sink, fd, stale_periods), ThrusterCommandDriver(sink, fd, stale_periods),
-            ValveCommandDriver(sink, fd, stale_periods)]
+        return [FtDriver(spec.arm, sink, fd, timing),
+                JointDriver(spec.arm, spec.joints, sink, fd, timing),
+                TorqueCommandDriver(spec.arm, spec.joints, sink, fd, timing)]
+    return [ImuDriver(sink, fd, timing), ThrusterCommandDriver(sink, fd, timing),
+            ValveCommandDriver(sink, fd, timing)]
 
 
 def listeners_for(spec: wire.BusSpec, sink: Sink, fd: bool = False,
-                  stale_periods: int = 10) -> tuple[BusMonitor, list[Driver]]:
+                  timing: SourceTiming = DEFAULT_TIMING) -> tuple[BusMonitor, list[Driver]]:
     """The monitor and the drivers of one bus, ready for ``can.Notifier(bus, [monitor, *drivers])``."""
-    drivers = drivers_for(spec, sink, fd, stale_periods)
+    drivers = drivers_for(spec, sink, fd, timing)
     owned = set().union(*(d.ids for d in drivers))
     return BusMonitor(spec, owned, fd), drivers

@@ -26,7 +26,9 @@ Counters are plain ints updated by the notifier thread; snapshots read them from
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
+from dataclasses import dataclass
 
 from drivers.samples import BusHealth, DeviceHealth
 
@@ -34,58 +36,107 @@ REASONS = ("error_frame", "extended_id", "unknown_id", "dlc", "remote_frame", "f
            "duplicate", "late", "incomplete")
 DEFAULT_STALE_PERIODS = 10
 RESYNC_PERIODS = 100   # a device silent for longer has resumed: trust the time, not the counter alone
-SPACING_WARMUP = 8     # samples before the spacing is known (and a long gap can mean an outage)
+DEVICE_CLOCK_WRAP_NS = (1 << 32) * 1000     # a device's u32 microsecond sample time wraps after 71.6 min
+
+
+@dataclass(frozen=True, slots=True)
+class SourceTiming:
+    """How the receiver's frame timestamps relate to the devices' sample clocks.
+
+    ``rate``: device seconds per timestamp second. 1.0 (default) for real devices, which sample
+    on their own clocks at their nominal periods, for a simulator run in real time, and for frames
+    stamped with simulation time (``bsc demo``, offline replay); 2.0 for a log played back at twice
+    its speed. ``None``: unknown, a simulation paced by its computation on a bus whose frames the
+    receiver stamps (lockstep over SocketCAN): a silence then hides an unknown multiple of 256
+    samples, which the health says (``lost_at_least``) instead of guessing.
+    ``stale_periods``: a device with no sample for this many nominal periods is stale.
+    """
+
+    rate: float | None = 1.0
+    stale_periods: int = DEFAULT_STALE_PERIODS
+
+    def __post_init__(self) -> None:
+        if self.rate is not None and not (math.isfinite(self.rate) and self.rate > 0):
+            raise ValueError(f"source rate {self.rate!r}: must be a positive number of device seconds per second")
+        if self.stale_periods < 1:
+            raise ValueError(f"stale periods {self.stale_periods!r}: must be at least 1")
+
+
+DEFAULT_TIMING = SourceTiming()
 
 
 class DeviceCounters:
-    """Per-device counters and the sample-counter sequence check (8-bit counters)."""
+    """Per-device counters and the sample-counter sequence check (8-bit counters).
 
-    __slots__ = ("device", "bus", "period_ns", "stale_periods", "fault_mask", "samples", "lost", "saturated",
-                 "rejected", "last_t_ns", "last_counter", "status", "spacing_ns")
+    Samples lost across a silence (:meth:`sequence`): the 8-bit counter gives the count modulo
+    256; which multiple of 256 is decided from what the receiver knows, best first:
+
+    1. the device's own sample time, when its frames carry one (the IMU's ``time_us``): exact;
+    2. the frame timestamps at the declared :class:`SourceTiming` ``rate``: the count congruent
+       to the counter step nearest ``gap * rate / period``, exact while the timestamps are off by
+       less than 128 periods over the silence;
+    3. rate unknown: the smallest count the counter allows, flagged ``lost_at_least``.
+
+    Never from an observed spacing between samples: an outage, a VM pausing or a loaded sender
+    change the spacing, and a smoothed spacing turned a 280-period outage into 24 lost.
+    """
+
+    __slots__ = ("device", "bus", "period_ns", "stale_periods", "rate", "fault_mask", "samples", "lost",
+                 "lost_at_least", "saturated", "rejected", "last_t_ns", "last_counter", "last_device_ns", "status")
 
     def __init__(self, device: str, bus: str, period_ns: int, fault_mask: int = 0,
-                 stale_periods: int = DEFAULT_STALE_PERIODS):
+                 timing: SourceTiming = DEFAULT_TIMING):
         self.device, self.bus = device, bus
-        self.period_ns, self.stale_periods, self.fault_mask = period_ns, stale_periods, fault_mask
+        self.period_ns, self.fault_mask = period_ns, fault_mask
+        self.stale_periods, self.rate = timing.stale_periods, timing.rate
         self.samples = self.lost = self.saturated = 0
+        self.lost_at_least = False
         self.rejected: Counter[str] = Counter()
         self.last_t_ns = 0
         self.last_counter: int | None = None
+        self.last_device_ns: int | None = None
         self.status = 0
-        self.spacing_ns = period_ns       # smoothed time between consecutive samples, >= period_ns
 
     def reject(self, reason: str, n: int = 1) -> None:
         self.rejected[reason] += n
 
-    def sequence(self, counter: int, t_ns: int | None = None) -> bool:
+    def sequence(self, counter: int, t_ns: int | None = None, device_ns: int | None = None) -> bool:
         """Check a completed sample's counter; False (and counted) if it must be dropped.
 
-        The 8-bit counter alone tells a gap, a duplicate and a late (reordered) sample apart only
-        within half its range. After a silence of more than :data:`RESYNC_PERIODS` sample steps (by
-        the sample time ``t_ns``, when given) the device has resumed: the sample is kept and the
-        samples lost are the count congruent to the counter step that best fits the time away. A
-        sample step's time is the device's period, or the observed spacing when the samples come
-        slower (a source slower than real time, e.g. a lockstep simulator in a VM, is no outage).
+        ``t_ns``: the sample's timestamp (receiver clock); ``device_ns``: the device's own sample
+        time, modulo :data:`DEVICE_CLOCK_WRAP_NS`, when its frames carry one. The 8-bit counter
+        alone tells a gap, a duplicate and a late (reordered) sample apart only within half its
+        range. A sample more than :data:`RESYNC_PERIODS` periods after the previous one ends a
+        silence: it is kept, and the samples lost are counted as the class docstring says.
         """
         last = self.last_counter
         if last is not None:
             d = (counter - last) & 0xFF
             if t_ns is not None and self.samples:
                 gap = t_ns - self.last_t_ns
-                # a sample step's time here: a source slower than real time (a VM) is no outage.
-                # A counter behind (or equal) after more than RESYNC_PERIODS nominal periods is no
-                # reordered or duplicated frame either: the device went on counting while away.
-                spacing = self.spacing_ns
-                limit = RESYNC_PERIODS * (spacing if 0 < d < 128 else self.period_ns)
-                if self.samples >= SPACING_WARMUP and gap > limit:
-                    n = d + 256 * max(0, round((gap / spacing - d) / 256))
-                    self.lost += max(n, 1) - 1
-                    self.last_counter = counter
-                    return True
-                if 0 < d < 128 and gap > 0:      # follow the observed spacing per sample step
-                    step = gap // d
-                    self.spacing_ns = max(self.period_ns, step if self.samples < SPACING_WARMUP
-                                          else spacing + (step - spacing) // 16)
+                rate = self.rate
+                limit = RESYNC_PERIODS * self.period_ns
+                if (gap if rate is None else gap * rate) > limit:
+                    steps = None                     # device periods elapsed, when known
+                    if device_ns is not None and self.last_device_ns is not None:
+                        away = (device_ns - self.last_device_ns) % DEVICE_CLOCK_WRAP_NS
+                        if away >= DEVICE_CLOCK_WRAP_NS // 2:   # sampled before the last one
+                            self.rejected["late"] += 1
+                            return False
+                        steps = away / self.period_ns
+                    elif rate is not None:
+                        steps = gap * rate / self.period_ns
+                    if steps is None or steps > RESYNC_PERIODS:
+                        if steps is None:            # the counter alone: at least this many
+                            n = d or 256
+                            self.lost_at_least = True
+                        else:
+                            n = d + 256 * max(0, round((steps - d) / 256))
+                        self.lost += max(n, 1) - 1
+                        self.last_counter = counter
+                        if device_ns is not None:
+                            self.last_device_ns = device_ns
+                        return True
             if d == 0:
                 self.rejected["duplicate"] += 1
                 return False
@@ -94,11 +145,13 @@ class DeviceCounters:
                 return False
             self.lost += d - 1
         self.last_counter = counter
+        if device_ns is not None:
+            self.last_device_ns = device_ns
         return True
 
-    def admit(self, counter: int, t_ns: int, saturated: bool, status: int) -> bool:
+    def admit(self, counter: int, t_ns: int, saturated: bool, status: int, device_ns: int | None = None) -> bool:
         """:meth:`sequence` then, if the sample is kept, :meth:`accept`: one call per sample."""
-        if not self.sequence(counter, t_ns):
+        if not self.sequence(counter, t_ns, device_ns):
             return False
         self.samples += 1
         self.last_t_ns = t_ns
@@ -115,11 +168,14 @@ class DeviceCounters:
             self.saturated += 1
 
     def snapshot(self, now_ns: int) -> DeviceHealth:
-        stale = self.samples == 0 or now_ns - self.last_t_ns > self.stale_periods * self.period_ns
+        quiet = now_ns - self.last_t_ns
+        if self.rate is not None:
+            quiet *= self.rate
+        stale = self.samples == 0 or quiet > self.stale_periods * self.period_ns
         return DeviceHealth(device=self.device, bus=self.bus, t_ns=now_ns, samples=self.samples, lost=self.lost,
                             saturated=self.saturated, rejected=tuple(sorted(self.rejected.items())),
                             last_t_ns=self.last_t_ns, stale=stale, status=self.status,
-                            faults=self.status & self.fault_mask)
+                            faults=self.status & self.fault_mask, lost_at_least=self.lost_at_least)
 
 
 class BusCounters:

@@ -115,6 +115,8 @@ class DeviceHealth:
     are listed in drivers/health.py). ``lost``: samples skipped in the counter sequence.
     ``stale``: no sample within ``stale_periods`` nominal periods (or none yet).
     ``faults``: the device's last status with only its fault bits kept (0 = healthy).
+    ``lost_at_least``: ``lost`` is a lower bound: a silence hid an unknown multiple of 256 samples
+    (the source's clock rate was not known; drivers/health.py).
     """
 
     device: str
@@ -128,6 +130,7 @@ class DeviceHealth:
     stale: bool
     status: int = 0
     faults: int = 0
+    lost_at_least: bool = False
 
 
 @dataclass(frozen=True, slots=True)

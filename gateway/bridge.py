@@ -65,6 +65,7 @@ from typing import Callable, Mapping
 import can
 
 from drivers import wire
+from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.samples import BusHealth
 from gateway import codec
 from gateway.pipeline import Pipeline
@@ -216,7 +217,7 @@ class _Tagger(can.Listener):
 
 class GatewayService:
     def __init__(self, robot, buses: Mapping[str, can.BusABC], session, *, fd: bool = False,
-                 health_period_s: float = 0.5, stale_periods: int = 10, estimate: bool = True,
+                 health_period_s: float = 0.5, timing: SourceTiming = DEFAULT_TIMING, estimate: bool = True,
                  model_robot=None, layout=None, record=None, publish_samples: bool = True,
                  max_backlog: int = DEFAULT_MAX_BACKLOG, reopen: Callable[[str], can.BusABC] | None = None,
                  retry_s: float = 0.5, receive: str = "auto"):
@@ -248,7 +249,7 @@ class GatewayService:
         self.recorder = record
         self.publish_samples = publish_samples
         self.pipeline = Pipeline(robot, emit=self._emit, model_robot=model_robot, layout=layout,
-                                 fd=fd, estimate=estimate, stale_periods=stale_periods)
+                                 fd=fd, estimate=estimate, timing=timing)
         self.max_backlog = max_backlog
         self.resume_backlog = int(max_backlog * RESUME_FRACTION)
         self.retry_s = float(retry_s)

@@ -16,6 +16,7 @@ import can
 
 from drivers import wire
 from drivers.devices import BusDispatcher, listeners_for
+from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import keys
 from gateway.efforts import JointEfforts, ThrusterEffort
@@ -31,11 +32,12 @@ _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "devi
 
 class Pipeline:
     """``Pipeline(robot, emit=...)``; ``model_robot`` is the gateway's belief of the robot (default
-    ``robot``: e.g. :func:`robot_description.perturbed` for a deliberately wrong model)."""
+    ``robot``: e.g. :func:`robot_description.perturbed` for a deliberately wrong model);
+    ``timing``: how frame timestamps relate to the devices' clocks (:class:`drivers.health.SourceTiming`)."""
 
     def __init__(self, robot: Robot, *, emit: Emit, model_robot: Robot | None = None,
                  layout: ThrusterLayout | None = None, fd: bool = False, estimate: bool = True,
-                 settings: LiveSettings | None = None, stale_periods: int = 10):
+                 settings: LiveSettings | None = None, timing: SourceTiming = DEFAULT_TIMING):
         self.robot = robot
         self.wire = wire.WireMap.from_robot(robot)
         self.name = self.wire.robot
@@ -43,7 +45,7 @@ class Pipeline:
         self.emit = emit
         self._listeners = {}
         for name, spec in self.wire.buses.items():
-            monitor, drivers = listeners_for(spec, self._on_sample, fd, stale_periods)
+            monitor, drivers = listeners_for(spec, self._on_sample, fd, timing)
             self._listeners[name] = [monitor, *drivers]
         self.monitors = {b: ls[0] for b, ls in self._listeners.items()}
         self._feeders = {b: BusDispatcher(ls[0], ls[1:]).feed for b, ls in self._listeners.items()}

@@ -25,6 +25,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="how frames reach the worker: direct (it polls the buses' sockets; the auto choice "
                             "when every bus has one: socketcan, udp_multicast) or threads (one python-can "
                             "notifier thread per bus); see docs/latency.md")
+    can_g.add_argument("--source-rate", type=source_rate, default=1.0, metavar="RATE|lockstep",
+                       help="device seconds per second of the frame timestamps: 1 (default) for real devices "
+                            "and simulators in real time, 2 for a log played at --rate 2, 'lockstep' for a "
+                            "simulation paced by its computation (a silence is then counted as a lower bound "
+                            "unless the device stamps its samples; docs/faults.md)")
     parser.add_argument("--robot", default=None, metavar="NAME|FILE", help="robot description (default paper_robot)")
     parser.add_argument("--model", default=None, metavar="FILE.urdf",
                         help="the gateway's model of the robot when it differs from --robot (default: --robot)")
@@ -39,6 +44,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from gateway.zenoh_config import add_zenoh_arguments
 
     add_zenoh_arguments(parser)
+
+
+def source_rate(text: str) -> float | None:
+    """``--source-rate`` value: a positive number, or ``lockstep`` (unknown: None)."""
+    if text.strip().lower() == "lockstep":
+        return None
+    try:
+        rate = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a number nor 'lockstep'") from None
+    if not (rate > 0 and rate != float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a positive number")
+    return rate
 
 
 def channels(spec: list[str], buses: list[str], *, every: bool = True) -> dict[str, str]:
@@ -101,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
     import zenoh
 
     import robot_description
+    from drivers.health import SourceTiming
     from drivers.wire import WireMap
     from gateway.bridge import GatewayService
     from gateway.zenoh_config import config_from_args
@@ -125,7 +144,9 @@ def run(args: argparse.Namespace) -> int:
 
             rec = stack.enter_context(Recorder(args.record))
             rec.add_session_context(**session_context(robot, fd=args.fd))
+        timing = SourceTiming(rate=args.source_rate)
         gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
+                                                timing=timing,
                                                 model_robot=model, layout=layout, record=rec,
                                                 publish_samples=not args.no_samples, receive=args.receive))
         freeze_heap()

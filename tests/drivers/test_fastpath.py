@@ -50,7 +50,7 @@ def test_builder_builds_the_same_objects():
              (TorqueCommand, ("arm1/j2", 4, 3, -2.5, True)),
              (ThrusterCommand, (6, 8, (1.0, 0.0, 0.0), (0.0, 0.0, 0.5), 0x3F, False)),
              (ValveCommand, (7, 9, 0x20009)),
-             (DeviceHealth, ("imu", "spacecraft", 1, 2, 3, 4, (("dlc", 1),), 5, True, 6, 7))]
+             (DeviceHealth, ("imu", "spacecraft", 1, 2, 3, 4, (("dlc", 1),), 5, True, 6, 7, True))]
     for cls, values in cases:
         make = frames.builder(cls)
         assert make is not cls, cls.__name__

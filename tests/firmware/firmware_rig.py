@@ -16,6 +16,7 @@ import can
 import numpy as np
 
 from drivers import devices, wire
+from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 
 # half an LSB of each wire field (drivers/frames.py), plus float slack
@@ -32,10 +33,10 @@ def snapshot(readings):
 class Rig:
     """The monitor and drivers of every bus of a robot, fed directly (``feed``)."""
 
-    def __init__(self, robot, fd: bool = False):
+    def __init__(self, robot, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         self.wire = wire.WireMap.from_robot(robot)
         self.samples: list = []
-        self.listeners = {name: devices.listeners_for(spec, self.samples.append, fd=fd)
+        self.listeners = {name: devices.listeners_for(spec, self.samples.append, fd=fd, timing=timing)
                           for name, spec in self.wire.buses.items()}
 
     def feed(self, batch):
@@ -86,8 +87,8 @@ class _Gate(can.Listener):
 class BusRig(Rig):
     """The same listeners under one ``can.Notifier`` per bus (the gateway's arrangement)."""
 
-    def __init__(self, robot, buses: dict, fd: bool = False):
-        super().__init__(robot, fd)
+    def __init__(self, robot, buses: dict, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
+        super().__init__(robot, fd, timing)
         self.gates = {name: _Gate() for name in buses}
         self.notifiers = []
         try:

@@ -26,7 +26,6 @@ import json
 import os
 import selectors
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -40,18 +39,13 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE.parent / "firmware"))   # the schedule and the comparison of tests/firmware
 
 from firmware_rig import by_device, check_against_readings, snapshot  # noqa: E402
+from support import free_port as _free_port  # noqa: E402
 
 CHANNELS = {"arm0": "vcan0", "arm1": "vcan1", "spacecraft": "vcan2"}
 HAVE_VCANS = all(Path(f"/sys/class/net/{ch}").exists() for ch in CHANNELS.values())
 DURATION_S = 0.1      # 100 steps, ~1350 frames: enough for every device, short in the VM
 WAIT_S = 300.0        # a hang becomes a failure after this (Python is ~14x slower in the VM)
 STALL_S = 60.0        # the gateway's frame counts standing still this long: a failure
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _bsc(*args) -> list[str]:
@@ -72,9 +66,12 @@ class GatewayProcess:
         self.err_path = tmp / "gateway.stderr"
         self.err = open(self.err_path, "w")
         # nice: the firmware stands for devices with CPUs of their own, so it must not wait for
-        # the gateway on the VM's one vCPU; the gateway catches up from its socket buffers
+        # the gateway on the VM's one vCPU; the gateway catches up from its socket buffers.
+        # --source-rate lockstep: `bsc sim` without --realtime runs as fast as the VM lets it, so
+        # the kernel's receive stamps do not measure the devices' clocks (drivers/health.py)
         self.proc = subprocess.Popen(
             ["nice", "-n", "19", *_bsc("gateway", "--interface", "socketcan", *chans, "--robot", "paper_robot",
+                                       "--source-rate", "lockstep",
                                        "--record", str(mcap), "--listen", endpoint, "--health-period", "0.25")],
             cwd=ROOT, env=_env(), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self.err, text=True)
         self.out: list[str] = []
