@@ -41,6 +41,22 @@ def declare_publisher(session, key: str):
     return session.declare_publisher(key, congestion_control=cc, express=cc == zenoh.CongestionControl.BLOCK)
 
 
+def wait_for_subscriber(session, key: str, timeout_s: float = 10.0) -> bool:
+    """Until a subscriber matching ``key`` is known to ``session`` (zenoh's matching status), or
+    ``timeout_s``: a put before that reaches nobody. False on timeout. For a caller that must not
+    lose its first messages (a demo, a test), instead of sleeping for a guessed propagation time."""
+    pub = session.declare_publisher(key)
+    try:
+        end = time.monotonic() + timeout_s
+        while not pub.matching_status.matching:
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.001)
+        return True
+    finally:
+        pub.undeclare()
+
+
 def put(publisher, payload: bytes) -> None:
     """Send an encoded payload with the ``publish_ns`` attachment."""
     publisher.put(payload, attachment=str(time.time_ns()).encode())

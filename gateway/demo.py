@@ -154,7 +154,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
     :func:`run_frames`)."""
     import zenoh
 
-    from gateway import keys
+    from gateway import codec, keys
     from gateway.bridge import GatewayService
     from gateway.recorder import Recorder
     from gateway.zenoh_config import make_config
@@ -191,7 +191,8 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
                 while (sample := sub.try_recv()) is not None:
                     take(sample)
 
-            time.sleep(0.3)                       # the subscription reaches the router
+            if not codec.wait_for_subscriber(gw_session, keys.efforts(robot.name)):
+                raise RuntimeError("the demo's zenoh subscription never reached the gateway's session")
             layout = ThrusterLayout.from_config(scenario.cfg.thrusters)
             counting = {name: _CountingBus(bus, name, frames) for name, bus in tx.items()}
             with GatewayService(robot, rx, gw_session, layout=layout, record=rec, publish_samples=True) as gw:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import threading
 import time
 import uuid
@@ -52,6 +51,7 @@ from gateway.zenoh_config import make_config
 from robot_description.thrusters import ThrusterLayout
 from simulator import firmware, scenario
 from simulator.engine import Simulation
+from support import free_port, subscribed
 
 LONG = os.environ.get("BSC_LONG") == "1"
 WAIT_S = 60.0                    # bounds that only turn a hang into a failure
@@ -68,12 +68,6 @@ IMU_MAX_AGE_NS = 3 * 2_000_000   # docs/estimator.md §4: 3 periods of the 500 H
 # the first joints 0.3 N m.
 TOL = {"force_n": 15.0, "moment_nm": 30.0, "full_nm": 12.0, "simplified_first_nm": 1.0}
 LOSS_KINDS = ("drop", "reorder", "bad_dlc", "silent")      # a sample that never reaches the estimator
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # --- the zenoh side: what a user's subscriber sees ----------------------------------------------
@@ -117,7 +111,8 @@ def zenoh_pair(robot_name: str):
         subs = [sub_s.declare_subscriber(keys.efforts(robot_name), inbox),
                 sub_s.declare_subscriber(keys.health(robot_name), inbox)]
         try:
-            time.sleep(0.2)                       # the subscriptions reach the gateway's session
+            subscribed(gw_s, keys.efforts(robot_name))
+            subscribed(gw_s, keys.health(robot_name))
             yield gw_s, inbox
         finally:
             for s in subs:

@@ -24,7 +24,6 @@ CI floods for a few seconds; ``BSC_LONG=1`` floods for 60 s (docs/faults.md).
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 
@@ -40,6 +39,7 @@ from gateway.zenoh_config import make_config
 from robot_description.thrusters import ThrusterLayout
 from simulator import firmware, scenario
 from simulator.engine import Simulation
+from support import free_port, subscribed
 
 LONG = os.environ.get("BSC_LONG") == "1"
 FLOOD_S = float(os.environ.get("BSC_LOAD_S") or (60.0 if LONG else 4.0))
@@ -48,12 +48,6 @@ BLOCK_S = 2.56                   # 2560 ms: the 8-bit counters of 1 kHz, 500 Hz 
 RX_BUFFER = 2000                 # frames an interface holds before it loses the oldest (counted)
 RSS_BOUND_MB = 32.0              # growth of VmRSS allowed after the backlog first filled
 WAIT_S = 120.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def vm_rss_mb() -> float:
@@ -190,7 +184,7 @@ def test_ten_times_the_nominal_rate_every_frame_counted_memory_bounded(block):
         with zenoh.open(make_config(listen=[ep])) as gw_s, zenoh.open(make_config(connect=[ep])) as sub_s:
             sub = sub_s.declare_subscriber(keys.everything(robot.name), counter)
             try:
-                time.sleep(0.2)
+                subscribed(gw_s, keys.everything(robot.name))
                 rss0 = vm_rss_mb()
                 sampler.start()
                 t0 = time.monotonic()

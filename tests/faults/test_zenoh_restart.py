@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import selectors
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,6 +24,7 @@ import pytest
 import zenoh
 
 from gateway.zenoh_config import make_config
+from support import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 KEY = "bsc/restart_test/alerts"
@@ -39,12 +39,6 @@ with zenoh.open(make_config(listen=[sys.argv[1]], mode="router")) as s:
     print("ready", s.zid(), flush=True)
     sys.stdin.read()          # until the test closes stdin (or kills the process)
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Router:

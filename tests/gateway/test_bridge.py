@@ -4,7 +4,6 @@ zenoh: explicit loopback endpoints, multicast scouting off (gateway.zenoh_config
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -23,14 +22,9 @@ from gateway.efforts import JointEfforts
 from gateway import codec, keys
 from gateway.bridge import GatewayService
 from gateway.zenoh_config import make_config
+from support import free_port, subscribed
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Collector:
@@ -147,21 +141,6 @@ def test_gateway_command_publishes_health_over_loopback():
     assert "bsc gateway: robot paper_robot" in out, err
 
 
-def subscribed(pub_s, sub_s) -> None:
-    """Wait until the subscriptions sub_s declared so far are known to pub_s (a put before that
-    reaches nobody): declare a probe subscriber after them and put until a probe arrives."""
-    got = threading.Event()
-    probe = sub_s.declare_subscriber("bsc-test/probe", lambda _s: got.set())
-    try:
-        for _ in range(100):
-            pub_s.put("bsc-test/probe", b"")
-            if got.wait(0.1):
-                return
-        pytest.fail("the subscription never reached the publishing session")
-    finally:
-        probe.undeclare()
-
-
 def arm0_ft_then_close(sessions, keyexpr: str, want, *, before_close=None, **service_kw) -> list:
     """A gateway of the paper robot receives three F/T samples of arm0 only (their epoch never
     completes), drains, ``before_close(collected)``, closes; what a subscriber to ``keyexpr``
@@ -177,7 +156,7 @@ def arm0_ft_then_close(sessions, keyexpr: str, want, *, before_close=None, **ser
     tx = can.Bus(interface="virtual", channel=wire.channel_name(prefix, "arm0"), receive_own_messages=False,
                  ignore_config=True)
     try:
-        subscribed(pub_s, sub_s)
+        subscribed(pub_s, keyexpr)
         gw = GatewayService(robot, buses, pub_s, **service_kw).start()
         sent = 0
         for c in range(3):

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -21,6 +20,7 @@ from gateway.efforts import Alert, JointEfforts
 from gateway.monitor.rules import load_rules
 from gateway.monitor.service import MonitorService
 from gateway.zenoh_config import make_config
+from support import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOT = "paper_robot"          # built in: torque limits known (arm0/j2: 300 N m)
@@ -38,12 +38,6 @@ hold_s = 1.0
 clear_hold_s = 1.0
 severity = "warning"
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def efforts(t_ns: int, i: int, fc_j2: float) -> JointEfforts:

@@ -6,7 +6,6 @@ import base64
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,14 +28,9 @@ from gateway.replay import read_context, session_context
 from gateway.zenoh_config import make_config
 
 from .conftest import REPO
+from support import free_port as _free_port
 
 ROBOT = "paper_robot"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _until(cond, timeout_s: float = 30.0) -> bool:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import random
-import socket
 import struct
 import threading
 import time
@@ -28,6 +27,7 @@ from gateway import replay as rp
 from gateway.cli import main
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.recorder import Recorder
+from support import free_port as _free_port
 
 ROBOT = "paper_robot"
 PNG = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + bytes(13) + b"\0\0\0\0"
@@ -376,11 +376,6 @@ def test_live_can_loop_until_stopped(session):
 
 
 # ----------------------------------------------------------------------------- live zenoh
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_live_zenoh_payloads_byte_identical(session, capsys):

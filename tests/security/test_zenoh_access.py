@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import socket
 import subprocess
 import threading
 from contextlib import ExitStack, contextmanager
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from support import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy" / "zenoh"
@@ -31,12 +31,6 @@ PASSWORDS = {"gateway": "gw-secret", "controller": "ctl-secret", "observer": "ob
 WAIT_S = 15.0      # a missing probe becomes a failure after this; nothing waits for a fixed time
 
 needs_openssl = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # --- certificates and credentials --------------------------------------------------------------
