@@ -31,7 +31,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 class DriversOnly:
     """Stand-in pipeline: the real drivers, no estimator (engine ceiling, not the target)."""
 
-    def __init__(self, robot, *, model_robot=None, fd=False, emit):
+    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None):
         from drivers.devices import listeners_for
         from drivers.wire import WireMap
         from gateway import keys

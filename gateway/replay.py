@@ -575,6 +575,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from drivers.samples import BusHealth, DeviceHealth
 
     import robot_description
+    from robot_description.thrusters import ThrusterLayout
 
     out_dir = Path(out_dir)
     with readable(path, warn) as src:
@@ -639,7 +640,11 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     kinds["samples"] += 1
                 record(key, obj)
 
-            kwargs = {"model_robot": model_robot, "fd": use_fd, "emit": emit}
+            # the thruster layout the session flew (a custom [[thrusters.custom]] one too): the
+            # filter's prior, without which its wrenches differ from the live run's
+            layout = (ThrusterLayout.from_scenario_text(scenario[1].decode("utf-8", "replace"),
+                                                        f"{path}: {SCENARIO_ATTACHMENT}") if scenario else None)
+            kwargs = {"model_robot": model_robot, "fd": use_fd, "emit": emit, "layout": layout}
             pipe = Pipeline(rob, **kwargs)
             known = set(pipe.buses)
             skipped: Counter[str] = Counter()

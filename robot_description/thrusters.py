@@ -190,6 +190,32 @@ class ThrusterLayout:
             raise ThrusterLayoutError(f"{path}: {exc}") from None
         raise ThrusterLayoutError(f"{path}: not a thruster layout file (no [[thruster]] rows, no [thrusters] table)")
 
+    @staticmethod
+    def scenario_text(spec: str | Path | None = None, max_thrust_n: float = DEFAULT_MAX_THRUST_N) -> str | None:
+        """What a log carries as its scenario so that :meth:`from_scenario_text` rebuilds exactly
+        the layout :meth:`load` gives for ``spec`` (None for the default, which needs nothing):
+        a scenario file's own text, a named layout's ``[thrusters]`` table, or ``[[thruster]]``
+        rows as ``[[thrusters.custom]]`` rows with the file's own numbers (so directions are
+        normalised once, from the same values, and the bits agree)."""
+        if spec is None:
+            return None
+        cls = ThrusterLayout
+        cls.load(spec, max_thrust_n)                    # the same checks and errors as loading it
+        if str(spec) in LAYOUTS:
+            return f'[thrusters]\nlayout = "{spec}"\nmax_thrust_n = {float(max_thrust_n)!r}\n'
+        text = Path(spec).read_text()
+        data = tomllib.loads(text)
+        if "thruster" not in data:
+            return text
+        default = data.get("max_thrust_n", max_thrust_n)
+        out = ["[thrusters]"]
+        for row in data["thruster"]:
+            vec = ", ".join
+            out += ["", "[[thrusters.custom]]", f"pos_m = [{vec(repr(float(x)) for x in row['pos_m'])}]",
+                    f"dir = [{vec(repr(float(x)) for x in row['dir'])}]",
+                    f"max_thrust_n = {float(row.get('max_thrust_n', default))!r}"]
+        return "\n".join(out) + "\n"
+
     def uncontrollable(self) -> list[str]:
         """The body-wrench directions (``+force x`` ... ``-moment z``) that no combination of
         thrusts produces. Thrust only pushes (u >= 0), so controlling all six axes takes at

@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None, metavar="FILE.urdf",
                         help="the gateway's model of the robot when it differs from --robot (default: --robot)")
     parser.add_argument("--thrusters", default=None, metavar="NAME|FILE",
-                        help="nominal thruster layout (default ring18, 100 N; robot_description/thrusters.py)")
+                        help="nominal thruster layout: a name (default ring18, 100 N), a [[thruster]] file or a "
+                             "scenario .toml with a [thrusters] table (robot_description/thrusters.py)")
     parser.add_argument("--record", type=Path, default=None, metavar="FILE.mcap", help="record the session")
     parser.add_argument("--health-period", type=float, default=0.5, metavar="S", help="health publication period")
     parser.add_argument("--no-samples", action="store_true",
@@ -143,7 +144,9 @@ def run(args: argparse.Namespace) -> int:
             from gateway.replay import session_context
 
             rec = stack.enter_context(Recorder(args.record))
-            rec.add_session_context(**session_context(robot, fd=args.fd))
+            # the layout the filter starts from, so that a replay of this log starts from it too
+            rec.add_session_context(**session_context(robot, fd=args.fd,
+                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters)))
         timing = SourceTiming(rate=args.source_rate)
         gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
                                                 timing=timing,

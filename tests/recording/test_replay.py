@@ -44,7 +44,7 @@ class StandInPipeline:
     ``ThrusterEffort``. Times come only from the samples' integer ``t_ns``.
     """
 
-    def __init__(self, robot, *, model_robot=None, fd=False, emit):
+    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None):
         self.wire = wire.WireMap.from_robot(robot)
         self.robot = robot.name
         self.buses = list(self.wire.buses)

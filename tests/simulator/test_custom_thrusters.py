@@ -77,6 +77,21 @@ def test_the_scenario_text_gives_the_same_layout(custom_file):
         assert np.array_equal(lay.B, flown.B) and np.array_equal(lay.max_n, flown.max_n)
 
 
+def test_a_logged_layout_is_the_layout_bsc_gateway_loaded(custom_file, tmp_path):
+    """bsc gateway --record --thrusters SPEC attaches ThrusterLayout.scenario_text(SPEC); a replay
+    rebuilds the layout from it bit for bit (a [[thruster]] file, a scenario file, a name)."""
+    rows = tmp_path / "rows.toml"
+    rows.write_text("max_thrust_n = 90.0\n" + "".join(
+        "[[thruster]]\n" + "".join(f"{k} = {v!r}\n" for k, v in row.items()) for row in _rows()))
+    for spec in (rows, custom_file, "ring18"):
+        loaded = ThrusterLayout.load(spec)
+        again = ThrusterLayout.from_scenario_text(ThrusterLayout.scenario_text(spec))
+        for a, b in ((loaded.pos_m, again.pos_m), (loaded.dir, again.dir), (loaded.max_n, again.max_n)):
+            assert np.array_equal(a, b), spec
+    assert ThrusterLayout.load(rows).max_n.tolist() == [90.0, 80.0] * 4 + [90.0] * 8
+    assert ThrusterLayout.scenario_text(None) is None
+
+
 def test_the_layout_defaults_are_the_scenario_defaults():
     """A log whose scenario says nothing of thrusters flew the default file's layout."""
     cfg = scenario.load().cfg.thrusters
