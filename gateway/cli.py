@@ -25,6 +25,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+# Exit statuses: CI and scripts tell these apart.
+EXIT_OK = 0
+EXIT_FAILURE = 1            # a bug or an unexpected failure (one line; --debug for the traceback)
+EXIT_USAGE = 2              # an error the user can fix: bad option, bad file
+EXIT_TARGETS_MISSED = 3     # the run completed, and its judged results missed their targets (bsc demo)
+EXIT_INTERRUPTED = 130      # Ctrl-C, as a shell reports SIGINT
+
+
 class UserError(Exception):
     """An error the user can fix (bad file, bad option): printed as one line, exit status 2."""
 
@@ -66,13 +74,13 @@ def main(argv: list[str] | None = None) -> int:
         return int(_load(args._module).run(args) or 0)
     except KeyboardInterrupt:
         print("bsc: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
         if args.debug:
             raise
         kind = "" if isinstance(exc, (UserError, OSError, ValueError)) else f"{type(exc).__name__}: "
         print(f"bsc {args.command}: error: {kind}{exc}", file=sys.stderr)
-        return 2 if isinstance(exc, (UserError, ValueError, OSError)) else 1
+        return EXIT_USAGE if isinstance(exc, (UserError, ValueError, OSError)) else EXIT_FAILURE
 
 
 if __name__ == "__main__":
