@@ -5,6 +5,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from gateway import demo
 from gateway.cli import EXIT_OK, EXIT_TARGETS_MISSED
@@ -76,3 +77,14 @@ def test_axes_that_never_fired_are_not_judged():
     assert math.isnan(row["force_nrmse_max"]) and math.isnan(row["moment_nrmse_max"])
     assert "no: never fired" in _row(demo.format_table(acc), "fx")
 
+
+def test_spacecraft_outline_comes_from_the_robot():
+    import robot_description
+    from simulator.plots import spacecraft_radius
+
+    paper = robot_description.load("paper_robot").urdf
+    assert spacecraft_radius(paper) == (pytest.approx(2.1), "arm mounts")          # the paper's 4.2 m
+    assert spacecraft_radius(robot_description.load("three_arm").urdf) == (pytest.approx(1.6), "arm mounts")
+    drawn = paper.replace('<link name="spacecraft">', '<link name="spacecraft"><visual><geometry>'
+                          '<cylinder radius="2.5" length="2"/></geometry></visual>', 1)
+    assert spacecraft_radius(drawn) == (2.5, "URDF cylinder")

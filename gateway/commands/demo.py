@@ -82,6 +82,24 @@ def exit_status(acc: dict, report_only: bool = False) -> int:
     return EXIT_OK if acc["pass"] or report_only else EXIT_TARGETS_MISSED
 
 
+def _figure_notes(acc: dict) -> tuple[list[str], dict[str, str]]:
+    """Panel titles: the accuracy figures next to the curves they describe."""
+    from gateway.demo import BAND_HZ, pct
+
+    band = acc["band_limited_20hz"]
+    thr = []
+    for ax, s in acc["thrusters"].items():
+        head = (f"{ax}: NRMSE {pct(s['nrmse'])} (target {pct(s['target'], 0)})" if s["judged"]
+                else f"{ax}: not judged (small peak), NRMSE {pct(s['nrmse'])}")
+        thr.append(f"{head}; in the {BAND_HZ:g} Hz band {pct(band['thrusters'][ax]['nrmse'])}")
+    joints = {}
+    for name, v in acc["joints"].items():
+        simp, full = v["simplified"], v["full"]
+        joints[name] = (f"NRMSE: full {pct(full['nrmse'])} (judged), simplified {pct(simp['nrmse'])} "
+                        f"({'judged' if simp['judged'] else 'reported'})")
+    return thr, joints
+
+
 def run(args: argparse.Namespace) -> int:
     import time
 
@@ -161,9 +179,15 @@ def run(args: argparse.Namespace) -> int:
     del robot
     t = time.perf_counter()
     trace.save(args.out / "truth.npz")
-    ests = {"estimated (full)": demo._fill(est.full), "estimated (simplified)": demo._fill(est.simplified)}
-    plots.joint_torques(trace, args.out / "joint_torques.png", estimates=ests)
-    plots.thruster_wrench(trace, args.out / "thruster_wrench.png", estimates={"estimated": demo._fill(est.thrusters)})
+    thr_notes, joint_notes = _figure_notes(acc)
+    # the full form first: the simplified one is drawn dashed on top, so where they coincide
+    # (the first joints) both stay visible
+    ests = {"estimated, full": demo._fill(est.full),
+            "estimated, simplified (paper)": demo._fill(est.simplified)}
+    plots.joint_torques(trace, args.out / "joint_torques.png", estimates=ests, notes=joint_notes)
+    plots.thruster_wrench(trace, args.out / "thruster_wrench.png",
+                          estimates={"estimated from the F/T sensors and IMU": demo._fill(est.thrusters)},
+                          band=(f"{demo.BAND_HZ:g} Hz band", demo.lowpass), notes=thr_notes)
     plots.trajectories(trace, args.out / "trajectories.png")
     timings["outputs_s"] = round(time.perf_counter() - t, 2)
     report["wall_s"] = round(time.perf_counter() - t0, 1)
