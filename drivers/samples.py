@@ -4,7 +4,7 @@ These frozen dataclasses are the contract between the bytes (``drivers``), the s
 of the simulator (which encodes the same readings) and the gateway (which estimates from them).
 Time is integer nanoseconds (``t_ns``): the CAN timestamp of the sample's first frame (of a one-frame
 sample, its frame): the closest to when the device sampled.
-Frames are named in every docstring; conventions follow ../shared/METHOD.md.
+Frames are named in every docstring; conventions follow docs/method.md.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ Vec3 = tuple[float, float, float]
 class WrenchSample:
     """One six-axis F/T reading of arm ``device``.
 
-    The wrench the SPACECRAFT exerts ON the arm (METHOD.md): force in N and moment in N m about
+    The wrench the SPACECRAFT exerts ON the arm (docs/method.md): force in N and moment in N m about
     the sensor origin S_j, both in the sensor frame. ``saturated`` is set when any channel was at
     the end of its range (the value is then clamped, never wrapped).
     """

@@ -16,7 +16,7 @@ in a row (the CUSUM itself would remember a long fault for as many sessions), th
 (in sigmas) the detector is tuned for; ``h`` trades delay for false alarms (with ``k_ref = 0.5``
 and ``h = 5`` the in-control average run length is about 900 sessions one-sided).
 
-Attribution uses the structure of the faults (METHOD.md):
+Attribution uses the structure of the faults (docs/method.md):
 
 - friction acts with ``sign(dq)`` on ONE joint: a Coulomb alarm -> ``actuator`` on that joint;
 - a thruster loss scales the delivered wrench: an efficiency DROP on an axis -> ``thruster``;

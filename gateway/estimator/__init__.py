@@ -1,4 +1,4 @@
-"""The estimator: actual joint torques and thruster wrench from the base F/T sensors (METHOD.md).
+"""The estimator: actual joint torques and thruster wrench from the base F/T sensors (docs/method.md).
 
 Pure functions shaped like Pinocchio's algorithms: build an :class:`EstimatorModel` once from a
 ``robot_description.Robot``, make one :class:`EstimatorData` per thread, then call e.g.

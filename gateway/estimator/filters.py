@@ -1,6 +1,6 @@
 """Spacecraft angular acceleration and thruster wrench from a rate gyro: filters and their trade-off.
 
-The gyro gives rates; METHOD.md needs ``dw_s``. Differencing a navigation-class gyro at 1 kHz
+The gyro gives rates; docs/method.md needs ``dw_s``. Differencing a navigation-class gyro at 1 kHz
 amplifies its white rate noise by ``sqrt(2) * rate_hz``: hundreds of mrad/s^2, thousands of N m of
 apparent thruster moment on a 5808 kg m^2 spacecraft. Three remedies, from plainest to best:
 

@@ -3,7 +3,7 @@
 Shaped like Pinocchio's model/data idiom: :class:`EstimatorModel` is immutable and may be
 shared between threads; :class:`EstimatorData` is scratch space, one per thread.
 
-Frames (../../docs/estimator.md, METHOD.md):
+Frames (docs/estimator.md, docs/method.md):
 
 - body frame: the spacecraft frame, origin at its centre of mass C;
 - sensor frame j: origin S_j, orientation R_j (sensor -> body), both fixed to the spacecraft;

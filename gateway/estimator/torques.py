@@ -1,4 +1,4 @@
-"""Joint torques from the base F/T sensors (METHOD.md section 2), one sample at a time.
+"""Joint torques from the base F/T sensors (docs/method.md section 2), one sample at a time.
 
 The live forms, computed with Pinocchio into an :class:`EstimatorData` (scratch, one per thread).
 :mod:`.batch` computes the same quantities with a vectorised numpy recursion; the tests hold the

@@ -1,4 +1,4 @@
-"""Thruster wrench from the base F/T sensors and the spacecraft motion (METHOD.md section 1).
+"""Thruster wrench from the base F/T sensors and the spacecraft motion (docs/method.md section 1).
 
 All functions broadcast over leading sample dimensions: pass ``ft`` of shape ``(p, 6)`` and
 vectors ``(3,)`` for one sample, or ``(N, p, 6)`` and ``(N, 3)`` for a batch. No I/O, no state.

@@ -6,7 +6,7 @@ depend on the publication rate. ``weight_s`` says how many (weighted) seconds of
 estimate; rules see an estimate only once that reaches ``min_weight_s``.
 
 - :class:`JointTracker` (one joint): ``r = commanded - estimated`` (the friction that opposed the
-  motion, METHOD.md section 3); ``friction_nm``/``viscous_nms``/``offset_nm`` from a weighted
+  motion, docs/method.md section 3); ``friction_nm``/``viscous_nms``/``offset_nm`` from a weighted
   least-squares fit ``r = Fc sign(dq) + Fv dq + c`` over moving samples (the same model as
   ``bsc analyze``, gateway/analysis/session.py); ``residual_nm`` the running mean |r|;
   ``efficiency`` estimated / commanded (least squares through 0).

@@ -140,7 +140,7 @@ def test_body_to_inertial(robot, emodel):
 
 
 def test_sign_conventions_static_hand_case():
-    """METHOD.md signs on a case done by hand.
+    """docs/method.md signs on a case done by hand.
 
     paper_robot at rest, q = 0: arm0 is straight along its sensor x axis (sensor at
     r = (1.4849, 1.4849, 0) m, turned +45 deg about z; joint 1 at x = 0.15 m, joint 2 at 4.15 m,
