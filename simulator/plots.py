@@ -127,7 +127,8 @@ def _legend_on_top(fig, axs, title: str) -> None:
     """One legend for the whole figure, between the title and the plots, so it hides no data.
     Called after the layout is done (tight_layout would make room for them twice)."""
     h = fig.get_figheight()
-    fig.subplots_adjust(top=1 - 0.95 / h)
+    titled = any(ax.get_title() for ax in axs.flat)       # panel titles need room of their own
+    fig.subplots_adjust(top=1 - (0.95 if titled else 0.75) / h)
     handles, labels = axs.flat[0].get_legend_handles_labels()
     fig.suptitle(title, fontsize=11, y=1 - 0.1 / h, va="top")
     leg = fig.legend(handles, labels, loc="upper center", ncol=min(len(labels), 4), fontsize=8,
