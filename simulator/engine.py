@@ -352,22 +352,17 @@ class Simulation:
                         valves=self._chunk_valves[k % self.base_every].copy())
 
     def run(self, progress: bool = False) -> Trace:
-        bar = None
-        if progress:
-            from tqdm import tqdm
-            bar = tqdm(total=self.n_steps, unit="ms", unit_scale=True, desc=f"sim {self.scenario.name}",
-                       mininterval=0.5, leave=False)
+        from .progress import SimProgress
+
         advance = self._advance
-        while self.k < self.n_steps:
-            advance()
-            if self.k - self._sensed >= SENSE_BLOCK:
-                self._sense(self.k)
-            if bar is not None and self.k % 250 == 0:
-                bar.update(250)
+        with SimProgress(self.scenario.name, self.n_steps, DT_S, enabled=progress) as bar:
+            while self.k < self.n_steps:
+                advance()
+                if self.k - self._sensed >= SENSE_BLOCK:
+                    self._sense(self.k)
+                bar.update(self.k)
         if self._sensed < self.k:
             self._sense(self.k)
-        if bar is not None:
-            bar.close()
         return self.trace
 
 

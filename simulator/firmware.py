@@ -512,11 +512,10 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
     missing = set(fw.wire.buses) - set(buses)
     if missing:
         raise FirmwareError(f"no bus given for {', '.join(sorted(missing))}")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=sim.n_steps, unit="ms", unit_scale=True, desc=f"sim {sim.scenario.name}",
-                   mininterval=0.5, leave=False)
+    from simulator.engine import DT_S
+    from simulator.progress import SimProgress
+
+    bar = SimProgress(sim.scenario.name, sim.n_steps, DT_S, enabled=progress)
     t0 = time.perf_counter()
     late_us: list[float] = []
 
@@ -553,13 +552,10 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
             send(batch)
         if on_step is not None:
             on_step(r)
-        if bar is not None and (r.t_ns // 1_000_000 + 1) % 250 == 0:
-            bar.update(250)
+        bar.update(r.t_ns // 1_000_000 + 1)
     send(fw.flush())
-    if bar is not None:
-        bar.close()
+    bar.close()
     if realtime:
-        from simulator.engine import DT_S
 
         fw.pacing = Pacing.of(late_us, DT_S * 1e6)
     return sim.trace

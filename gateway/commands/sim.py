@@ -116,6 +116,7 @@ def _uses_can(args: argparse.Namespace) -> bool:
 def run(args: argparse.Namespace) -> int:
     if args.series is not None:
         return _run_series(args)
+    from gateway import demo
     from simulator import plots, scenario
     from simulator.engine import Simulation
 
@@ -159,7 +160,8 @@ def run(args: argparse.Namespace) -> int:
         for name, fn in (("trajectories.png", lambda p: plots.trajectories(trace, p)),
                          ("ee_error.png", lambda p: plots.ee_error(traces, p)),
                          ("joint_torques.png", lambda p: plots.joint_torques(trace, p)),
-                         ("thruster_wrench.png", lambda p: plots.thruster_wrench(trace, p))):
+                         ("thruster_wrench.png", lambda p: plots.thruster_wrench(
+                             trace, p, band=(f"{demo.BAND_HZ:g} Hz band", demo.lowpass)))):
             fn(args.out / name)
             summary["files"].append(name)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
