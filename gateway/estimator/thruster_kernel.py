@@ -478,6 +478,20 @@ class CompiledThrusterFilter:
         ``push_epoch`` takes ``hist_t, hist_arm, hist_mask, ist``. The live arrays, updated in place."""
         return self._state
 
+    def share(self, arrays) -> None:
+        """Work on ``arrays`` from now on: the same shapes, dtypes and order as :attr:`state`,
+        e.g. views of a caller's state buffer (the compiled estimator keeps all its state in two
+        buffers). The current values are copied into them first."""
+        arrays = tuple(arrays)
+        if len(arrays) != len(self._state) or any(a.shape != b.shape or a.dtype != b.dtype
+                                                  for a, b in zip(arrays, self._state)):
+            raise ValueError("share() needs arrays shaped like CompiledThrusterFilter.state")
+        for a, b in zip(arrays, self._state):
+            a[...] = b
+        (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm, self._hist_mask,
+         self._ist, self._fst) = arrays
+        self._state = arrays
+
     # -- the estimate ----------------------------------------------------------------------------
     @property
     def x(self) -> np.ndarray:

@@ -1,0 +1,768 @@
+"""The live estimator compiled: decoded samples in (any order across buses), efforts out.
+
+One implementation for every caller: the live gateway feeds a few samples per call, an offline
+replay hundreds of thousands; explicit loops in compiled code give the same bits either way, so a
+replay of a session's frames reproduces the efforts the live run published (docs/estimator.md,
+"Live").
+
+Synchronisation policy (unchanged from the first wave; docs/estimator.md):
+
+- An *epoch* is one F/T sampling instant (1 kHz). Its required members are the F/T sample of
+  every arm, the joint state of every joint and the valve command. A sample belongs to the epoch
+  of its slot on a grid of one-period slots centred on the bursts of frames: the grid's phase is
+  placed in the widest quiet gap between the first 64 members' arrival phases, then follows the
+  bursts' middles.
+- An epoch is computed as soon as it is complete. When a later epoch completes first, the earlier
+  one is computed with what it has (each bus is FIFO: its missing inputs were lost) and flagged;
+  so is the oldest epoch when more than ``max_open`` are waiting (a silent bus).
+- Slower streams (IMU, torque and thruster commands) are applied to the first epoch at least half
+  a period later than their timestamp; what arrived by the time an epoch is computed is applied
+  right after its efforts (the filter's IMU update is off the latency path).
+- Flags: a missing joint state holds the previous one (``stale:<arm>/<joint>``); a missing F/T
+  sample or valve command makes every estimate of the epoch not good (``missing:<device>``);
+  saturated or faulty inputs flag ``saturated:<device>`` / ``fault:<device>``; ``warmup`` until
+  the first IMU sample; ``stale:imu`` when it is older than ``stale_periods`` IMU periods.
+
+Data (all numpy, owned by :class:`EstimatorCore`): sample rows in (:data:`SAMPLE_DTYPE`), per
+epoch an output row (:data:`EFFORT_DTYPE`: times, torques, thruster wrench, commanded values and
+one flag bit per name of :attr:`EstimatorCore.flag_names`). The maths are
+:mod:`.chain_kernel` (base motion and joint torques) and :mod:`.thruster_kernel` (the
+valve-aided thruster filter).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from drivers import wire
+from robot_description import Robot
+from robot_description.thrusters import ThrusterLayout
+
+from . import chain_kernel as ck
+from . import thruster_kernel as tk
+from .model import EstimatorModel
+from .thrusters import ThrusterFilterSettings
+
+_jit = njit(cache=True, fastmath=False, error_model="numpy")
+
+# sample kinds (SAMPLE_DTYPE["kind"])
+WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = 0, 1, 2, 3, 4, 5
+N_VALUES = 10
+
+SAMPLE_DTYPE = np.dtype([
+    ("kind", np.int64),       # WRENCH .. VALVES
+    ("device", np.int64),     # arm index (WRENCH), joint index (JOINT, TORQUE_CMD), else 0
+    ("t_ns", np.int64),       # the sample's timestamp (its first frame)
+    ("saturated", np.int64),  # 0 / 1
+    ("status", np.int64),     # the device's status word
+    ("valves", np.int64),     # THRUSTER_CMD, VALVES: the valve mask
+    ("values", np.float64, (N_VALUES,)),
+])
+"""One decoded sample. ``values``: WRENCH force (3, N) torque (3, N m), sensor frame; JOINT angle
+(rad), rate (rad/s); TORQUE_CMD torque (N m); IMU quaternion w x y z, rate (3, rad/s), specific
+force (3, m/s^2), IMU frame; THRUSTER_CMD force (3, N), moment (3, N m)."""
+
+PHASE_LEARN_SAMPLES = 64     # members held at start to find where the sensor bursts sit in a period
+PHASE_TRACK = 64             # the grid follows the bursts' middle with this time constant (epochs)
+
+# the scalar state (SI array)
+_CENTER, _HAVE_CENTER, _LAST_CLOSED, _EPOCHS, _GOOD, _LATE, _N_OPEN, _N_PEND, _N_HELD, _LEARNING, \
+    _LEARN_MEMBERS, _GYRO_T, _HAVE_GYRO, _FAULTS, _THR_HAVE, _THR_T, _THR_VALVES, _N_OUT, _PEND_DROPPED, \
+    _HELD_DROPPED = range(20)
+_N_SI = 20
+
+# the common flags (bits 0..4 of a flag row), then 3 per arm, then 4 per joint
+F_WARMUP, F_STALE_IMU, F_MISSING_VALVES, F_SAT_IMU, F_FAULT_IMU = range(5)
+_N_COMMON = 5
+A_MISSING, A_SATURATED, A_FAULT = range(3)
+J_STALE, J_MISSING, J_SATURATED, J_FAULT = range(4)
+
+
+@dataclass(frozen=True)
+class CoreSettings:
+    max_open: int = 20                 # epochs waiting for members before the oldest is forced out
+    stale_periods: int = 3             # a slower stream older than this many of its periods is stale
+    thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
+    pending_capacity: int = 1 << 14    # slower-stream samples waiting for an epoch (oldest dropped beyond)
+    held_capacity: int = 1 << 14       # samples held while the grid's phase is learnt
+
+
+def flag_names(robot: Robot) -> list[str]:
+    """The flag of each bit of an effort row, in bit order."""
+    names = ["warmup", "stale:imu", "missing:valves", "saturated:imu", "fault:imu"]
+    for a in robot.arms:
+        names += [f"missing:{a.name}", f"saturated:{a.name}", f"fault:{a.name}"]
+    for j in robot.joint_names:
+        names += [f"stale:{j}", f"missing:{j}", f"saturated:{j}", f"fault:{j}"]
+    return names
+
+
+def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
+    return np.dtype([
+        ("t_ns", np.int64),                     # the epoch's time on the grid
+        ("full_nm", np.float64, (n_joints,)),
+        ("simplified_nm", np.float64, (n_joints,)),
+        ("rate_rad_s", np.float64, (n_joints,)),
+        ("commanded_nm", np.float64, (n_joints,)),
+        ("commanded_have", np.int64, (n_joints,)),
+        ("commanded_t_ns", np.int64, (n_joints,)),
+        ("thruster", np.float64, (6,)),         # force (N), moment about C (N m), body frame
+        ("thruster_cmd", np.float64, (6,)),
+        ("thruster_cmd_t_ns", np.int64),
+        ("thruster_cmd_valves", np.int64),
+        ("thruster_cmd_have", np.int64),
+        ("flags", np.uint8, (n_flags,)),
+    ])
+
+
+# --- the compiled state machine -------------------------------------------------------------------
+
+@_jit
+def _grid(si, period, half, t):
+    c = si[_CENTER]
+    return c + ((t - c + half) // period) * period
+
+
+@_jit
+def _lock_phase(si, cfg, held):
+    """Place the grid: a boundary in the middle of the widest quiet gap between the held
+    members' arrival phases. Depends only on the set of timestamps, not on their order. The
+    caller then feeds the held samples again (:func:`_replay_held`)."""
+    period, half = cfg[0], cfg[1]
+    n = si[_N_HELD]
+    si[_LEARNING] = 0
+    nm = 0
+    for k in range(n):
+        kd = held[k]["kind"]
+        if kd == WRENCH or kd == JOINT or kd == VALVES:
+            nm += 1
+    ts = np.empty(max(nm, n, 1), dtype=np.int64)
+    m = 0
+    if nm > 0:
+        for k in range(n):
+            kd = held[k]["kind"]
+            if kd == WRENCH or kd == JOINT or kd == VALVES:
+                ts[m] = held[k]["t_ns"]
+                m += 1
+    elif n > 0:
+        for k in range(n):
+            ts[m] = held[k]["t_ns"]
+            m += 1
+    else:
+        ts[0] = 0
+        m = 1
+    t0 = ts[0]
+    for k in range(m):
+        if ts[k] < t0:
+            t0 = ts[k]
+    ph = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        ph[k] = (ts[k] - t0) % period
+    ph = np.unique(ph)                     # sorted, distinct
+    # (width, start) of the widest gap; ties go to the later start, as Python's max over tuples
+    width = ph[0] + period - ph[ph.shape[0] - 1]
+    start = ph[ph.shape[0] - 1]
+    for k in range(ph.shape[0] - 1):
+        w = ph[k + 1] - ph[k]
+        if w > width or (w == width and ph[k] > start):
+            width, start = w, ph[k]
+    si[_CENTER] = t0 + start + width // 2 + half
+    si[_HAVE_CENTER] = 1
+
+
+@_jit
+def _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                 chain, tf, scratch):
+    n = si[_N_HELD]
+    si[_N_HELD] = 0
+    for k in range(n):
+        _add(si, cfg, held, held[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+             chain, tf, scratch)
+
+
+@_jit
+def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+    kind = s["kind"]
+    if si[_LEARNING] != 0:
+        n = si[_N_HELD]
+        if n >= held.shape[0]:
+            si[_HELD_DROPPED] += 1
+            return 0
+        held[n] = s
+        si[_N_HELD] = n + 1
+        if kind == WRENCH or kind == JOINT or kind == VALVES:
+            si[_LEARN_MEMBERS] += 1
+            if si[_LEARN_MEMBERS] >= cfg[7]:
+                return 1                     # the caller locks the phase and replays the held samples
+        return 0
+    if kind == IMU or kind == TORQUE_CMD or kind == THRUSTER_CMD:
+        n = si[_N_PEND]
+        if n >= pend.shape[0]:             # keep the newest: drop the oldest
+            for k in range(n - 1):
+                pend[k] = pend[k + 1]
+            n -= 1
+            si[_PEND_DROPPED] += 1
+        pend[n] = s
+        si[_N_PEND] = n + 1
+        return 0
+    if kind != WRENCH and kind != JOINT and kind != VALVES:
+        return 0
+    period, half = cfg[0], cfg[1]
+    t = s["t_ns"]
+    g = _grid(si, period, half, t)
+    # the open epoch within half a period of g (the first, in time order), else a new one
+    n_open = si[_N_OPEN]
+    e = -1
+    for k in range(n_open):
+        d = ep_t[k, 0] - g
+        if d < 0:
+            d = -d
+        if d < half:
+            e = k
+            break
+    if e < 0:
+        if g <= si[_LAST_CLOSED] + half:
+            si[_LATE] += 1                   # too late to be used: only the max_open rule applies
+            _advance(si, cfg, -1, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                     chain, tf, scratch)
+            return 0
+        k = n_open
+        if n_open > 0 and ep_t[n_open - 1, 0] >= g:
+            k = 0
+            while ep_t[k, 0] <= g:
+                k += 1
+            for r in range(n_open, k, -1):     # make room, keeping time order
+                ep_t[r] = ep_t[r - 1]
+                ep_i[r] = ep_i[r - 1]
+                ep_ft[r] = ep_ft[r - 1]
+                ep_j[r] = ep_j[r - 1]
+        ep_t[k, 0] = g
+        ep_t[k, 1] = 0                       # first, last: own timestamps of its members
+        ep_t[k, 2] = 0
+        ep_t[k, 3] = 0                       # 1 once first/last are set
+        for r in range(ep_i.shape[1]):
+            ep_i[k, r] = 0
+        si[_N_OPEN] = n_open + 1
+        e = k
+    if ep_t[e, 3] == 0 or t < ep_t[e, 1]:
+        ep_t[e, 1] = t
+    if ep_t[e, 3] == 0 or t > ep_t[e, 2]:
+        ep_t[e, 2] = t
+    ep_t[e, 3] = 1
+    p = cfg[2]
+    if kind == WRENCH:
+        a = s["device"]
+        ep_i[e, 3 + 3 * a] = 1
+        ep_i[e, 4 + 3 * a] = s["saturated"]
+        ep_i[e, 5 + 3 * a] = s["status"]
+        for r in range(6):
+            ep_ft[e, a, r] = s["values"][r]
+    elif kind == JOINT:
+        j = s["device"]
+        base = 3 + 3 * p + 3 * j
+        ep_i[e, base] = 1
+        ep_i[e, base + 1] = s["saturated"]
+        ep_i[e, base + 2] = s["status"]
+        ep_j[e, j, 0] = s["values"][0]
+        ep_j[e, j, 1] = s["values"][1]
+    else:
+        ep_i[e, 0] = 1
+        ep_i[e, 1] = s["valves"]
+    _advance(si, cfg, e, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch)
+    return 0
+
+
+@_jit
+def _complete(cfg, ep_i, e):
+    p, nj = cfg[2], cfg[3]
+    if ep_i[e, 0] == 0:
+        return False
+    for a in range(p):
+        if ep_i[e, 3 + 3 * a] == 0:
+            return False
+    for j in range(nj):
+        if ep_i[e, 3 + 3 * p + 3 * j] == 0:
+            return False
+    return True
+
+
+@_jit
+def _advance(si, cfg, touched, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+             scratch):
+    # Every open epoch but ``touched`` was incomplete after its last change (complete ones are
+    # computed at once), so the last complete one, if any, is ``touched``.
+    n_open = si[_N_OPEN]
+    last = touched if (touched >= 0 and _complete(cfg, ep_i, touched)) else -1
+    max_open = cfg[6]
+    if n_open - (last + 1) > max_open:
+        last = n_open - max_open - 1
+    if last < 0:
+        return
+    nready = last + 1
+    # take the ready epochs out first (as the Python form did: computing one may not touch the rest)
+    rt = ep_t[:nready].copy()
+    ri = ep_i[:nready].copy()
+    rf = ep_ft[:nready].copy()
+    rj = ep_j[:nready].copy()
+    for r in range(nready, n_open):
+        ep_t[r - nready] = ep_t[r]
+        ep_i[r - nready] = ep_i[r]
+        ep_ft[r - nready] = ep_ft[r]
+        ep_j[r - nready] = ep_j[r]
+    si[_N_OPEN] = n_open - nready
+    for r in range(nready):
+        _compute(si, cfg, rt[r], ri[r], rf[r], rj[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch)
+
+
+@_jit
+def _apply_pending(si, cfg, lim, pend, jcmd, jcmd_i, thr_cmd, tf):
+    """Apply the slower-stream samples whose grid time is at most ``lim``, in arrival order."""
+    period, half = cfg[0], cfg[1]
+    n = si[_N_PEND]
+    keep = 0
+    for k in range(n):
+        s = pend[k]
+        g = _grid(si, period, half, s["t_ns"])
+        if g > lim:
+            if keep != k:
+                pend[keep] = s
+            keep += 1
+            continue
+        kind = s["kind"]
+        if kind == IMU:                       # it ends the filter steps of its grid epoch
+            v = s["values"]
+            tk.imu(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10], v[4:7])
+            si[_GYRO_T] = g
+            si[_HAVE_GYRO] = 1
+            if s["saturated"] != 0:
+                si[_FAULTS] |= 1 << F_SAT_IMU
+            if s["status"] & cfg[10] != 0:
+                si[_FAULTS] |= 1 << F_FAULT_IMU
+        elif kind == TORQUE_CMD:
+            j = s["device"]
+            jcmd[j] = s["values"][0]
+            jcmd_i[j, 0] = s["t_ns"]
+            jcmd_i[j, 1] = 1
+        else:
+            for r in range(6):
+                thr_cmd[r] = s["values"][r]
+            si[_THR_HAVE] = 1
+            si[_THR_T] = s["t_ns"]
+            si[_THR_VALVES] = s["valves"]
+    si[_N_PEND] = keep
+
+
+@_jit
+def _compute(si, cfg, et, ei, eft, ej, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+    period, half, p, nj = cfg[0], cfg[1], cfg[2], cfg[3]
+    t = et[0]
+    if t > si[_LAST_CLOSED]:
+        si[_LAST_CLOSED] = t
+    complete = ei[0] != 0
+    for a in range(p):
+        complete = complete and ei[3 + 3 * a] != 0
+    for j in range(nj):
+        complete = complete and ei[3 + 3 * p + 3 * j] != 0
+    if et[3] != 0 and complete:            # the grid follows the bursts (drift)
+        si[_CENTER] += ((et[1] + et[2]) // 2 - t) // cfg[8]
+    si[_EPOCHS] += 1
+    if si[_N_PEND] > 0:
+        _apply_pending(si, cfg, t - half, pend, jcmd, jcmd_i, thr_cmd, tf)
+    o = si[_N_OUT]
+    fl = out[o]["flags"]
+    for k in range(fl.shape[0]):
+        fl[k] = 0
+    faults = si[_FAULTS]                   # noted by the slower streams applied since the last epoch
+    si[_FAULTS] = 0
+    if faults & (1 << F_SAT_IMU):
+        fl[F_SAT_IMU] = 1
+    if faults & (1 << F_FAULT_IMU):
+        fl[F_FAULT_IMU] = 1
+    if si[_HAVE_GYRO] == 0:
+        fl[F_WARMUP] = 1
+    elif t - si[_GYRO_T] > cfg[5]:
+        fl[F_STALE_IMU] = 1
+    if ei[0] == 0:
+        fl[F_MISSING_VALVES] = 1
+    ft_trusted = True
+    ft = scratch[0]
+    for a in range(p):
+        fa = _N_COMMON + 3 * a
+        if ei[3 + 3 * a] == 0:
+            fl[fa + A_MISSING] = 1
+            for r in range(6):
+                ft[a, r] = 0.0
+            ft_trusted = False
+            continue
+        for r in range(6):
+            ft[a, r] = eft[a, r]
+        if ei[4 + 3 * a] != 0:
+            fl[fa + A_SATURATED] = 1
+            ft_trusted = False
+        if ei[5 + 3 * a] & cfg[9] != 0:
+            fl[fa + A_FAULT] = 1
+            ft_trusted = False
+    for j in range(nj):
+        fj = _N_COMMON + 3 * p + 4 * j
+        base = 3 + 3 * p + 3 * j
+        if ei[base] == 0:
+            if jstate[j, 2] != 0:
+                fl[fj + J_STALE] = 1
+            else:
+                fl[fj + J_MISSING] = 1
+            continue
+        jstate[j, 0] = ej[j, 0]
+        jstate[j, 1] = ej[j, 1]
+        jstate[j, 2] = 1.0
+        if ei[base + 1] != 0:
+            fl[fj + J_SATURATED] = 1
+        if ei[base + 2] & cfg[11] != 0:
+            fl[fj + J_FAULT] = 1
+    mask = ei[1] if ei[0] != 0 else 0
+    row = out[o]
+    thr = row["thruster"]
+    tk.wrench(tf[0], mask, thr)
+    q = jstate[:, 0]
+    dq = jstate[:, 1]
+    w_s = scratch[1][0, :3]
+    for k in range(3):                     # the latest gyro rate, body frame (the filter keeps it)
+        w_s[k] = tf[9][3 + k]
+    a_s = scratch[1][1, :3]
+    dw_s = scratch[1][2, :3]
+    arm_w = scratch[1][3]
+    ddq = scratch[2][0]
+    gc, per, U, FU, W, Bt, Vm, cs, vec = chain[7]
+    ck._epoch(chain[0], chain[1], chain[2], chain[3], chain[4], chain[5], chain[6][0], q, dq, ft, thr, w_s,
+              row["simplified_nm"], ddq, row["full_nm"], a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec)
+    # the filter learns only from whole, trusted steps (every F/T sample, none saturated or
+    # faulty, and the valve command); the IMU samples whose interval a missing step falls in
+    # are then not applied (tk.tf_imu)
+    if ft_trusted and ei[0] != 0:
+        tk.push_epoch(tf[5], tf[6], tf[7], tf[8], t, arm_w, mask)
+    row["t_ns"] = t
+    for j in range(nj):
+        row["rate_rad_s"][j] = jstate[j, 1]
+        row["commanded_nm"][j] = jcmd[j]
+        row["commanded_t_ns"][j] = jcmd_i[j, 0]
+        row["commanded_have"][j] = jcmd_i[j, 1]
+    for r in range(6):
+        row["thruster_cmd"][r] = thr_cmd[r]
+    row["thruster_cmd_t_ns"] = si[_THR_T]
+    row["thruster_cmd_valves"] = si[_THR_VALVES]
+    row["thruster_cmd_have"] = si[_THR_HAVE]
+    # good (the thruster effort): no common flag, no arm-level flag of any arm
+    good = True
+    for k in range(_N_COMMON + 3 * p):
+        if fl[k] != 0:
+            good = False
+    si[_GOOD] += good
+    si[_N_OUT] = o + 1
+    if si[_N_PEND] > 0:                    # off the latency path: what the next epoch applies first
+        _apply_pending(si, cfg, t + half, pend, jcmd, jcmd_i, thr_cmd, tf)
+
+
+# --- the entry points: every array a view of three buffers ------------------------------------------
+# A call's cost in the live gateway is mostly numba's dispatch, about 0.06 us per array argument:
+# the state lives in one int64 and one float64 buffer, carved into views here (lay: per view
+# offset and dims, ViewLayout).
+
+@_jit
+def _i1(I, lay, k):
+    o = lay[k, 0]
+    return I[o:o + lay[k, 1]]
+
+
+@_jit
+def _i2(I, lay, k):
+    o = lay[k, 0]
+    return I[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
+
+
+@_jit
+def _f1(F, lay, k):
+    o = lay[k, 0]
+    return F[o:o + lay[k, 1]]
+
+
+@_jit
+def _f2(F, lay, k):
+    o = lay[k, 0]
+    return F[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
+
+
+@_jit
+def _f3(F, lay, k):
+    o = lay[k, 0]
+    return F[o:o + lay[k, 1] * lay[k, 2] * lay[k, 3]].reshape((lay[k, 1], lay[k, 2], lay[k, 3]))
+
+
+@_jit
+def _views(I, F, lay):
+    si, cfg = _i1(I, lay, 0), _i1(I, lay, 1)
+    ep_t, ep_i, jcmd_i = _i2(I, lay, 2), _i2(I, lay, 3), _i2(I, lay, 4)
+    ep_ft, ep_j, jstate = _f3(F, lay, 5), _f3(F, lay, 6), _f2(F, lay, 7)
+    jcmd, thr_cmd = _f1(F, lay, 8), _f1(F, lay, 9)
+    chain = (_i1(I, lay, 10), _i1(I, lay, 11), _f2(F, lay, 12), _f3(F, lay, 13), _f1(F, lay, 14),
+             _f1(F, lay, 15), _f1(F, lay, 16),
+             (_f2(F, lay, 17), _f3(F, lay, 18), _f2(F, lay, 19), _f3(F, lay, 20), _f2(F, lay, 21),
+              _f2(F, lay, 22), _f2(F, lay, 23), _f2(F, lay, 24), _f2(F, lay, 25)))
+    tf = (_f1(F, lay, 26), _f2(F, lay, 27), _f1(F, lay, 28), _f1(F, lay, 29), _f1(F, lay, 30),
+          _i1(I, lay, 31), _f2(F, lay, 32), _i1(I, lay, 33), _i1(I, lay, 34), _f1(F, lay, 35))
+    scratch = (_f2(F, lay, 36), _f2(F, lay, 37), _f2(F, lay, 38))
+    return si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch
+
+
+@_jit
+def feed_kernel(I, F, lay, held, pend, samples, out):
+    """Sample rows in arrival order; returns the number of effort rows written to ``out``."""
+    si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
+    si[_N_OUT] = 0
+    for k in range(samples.shape[0]):
+        if _add(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i,
+                thr_cmd, chain, tf, scratch):
+            _lock_phase(si, cfg, held)
+            _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                         chain, tf, scratch)
+    return si[_N_OUT]
+
+
+@_jit
+def flush_kernel(I, F, lay, held, pend, out):
+    """End of input: every waiting epoch computed with what it has; returns the rows written."""
+    si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
+    si[_N_OUT] = 0
+    if si[_LEARNING] != 0:
+        _lock_phase(si, cfg, held)
+        _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                     chain, tf, scratch)
+    n_open = si[_N_OPEN]
+    if n_open > 0:
+        rt = ep_t[:n_open].copy()
+        ri = ep_i[:n_open].copy()
+        rf = ep_ft[:n_open].copy()
+        rj = ep_j[:n_open].copy()
+        si[_N_OPEN] = 0
+        for r in range(n_open):
+            _compute(si, cfg, rt[r], ri[r], rf[r], rj[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+                     scratch)
+    return si[_N_OUT]
+
+
+class ViewLayout:
+    """Arrays packed into one int64 and one float64 buffer, in order; ``views[k]`` is array k as
+    a view of its buffer (the kernels carve the same views from ``lay``)."""
+
+    def __init__(self, arrays: list[np.ndarray]):
+        ni = sum(a.size for a in arrays if a.dtype == np.int64)
+        nf = sum(a.size for a in arrays if a.dtype != np.int64)
+        self.I = np.zeros(max(ni, 1), dtype=np.int64)
+        self.F = np.zeros(max(nf, 1))
+        self.lay = np.zeros((len(arrays), 4), dtype=np.int64)
+        self.views: list[np.ndarray] = []
+        oi = of = 0
+        for k, a in enumerate(arrays):
+            a = np.asarray(a)
+            if a.dtype == np.int64:
+                buf, o = self.I, oi
+                oi += a.size
+            else:
+                buf, o = self.F, of
+                of += a.size
+            dims = list(a.shape) + [1] * (3 - a.ndim)
+            self.lay[k] = (o, *dims)
+            v = buf[o:o + a.size].reshape(a.shape)
+            v[...] = a
+            self.views.append(v)
+
+
+# --- the Python side ------------------------------------------------------------------------------
+
+class EstimatorCore:
+    """The live estimator of one robot: :meth:`feed` sample rows, get effort rows.
+
+    ``robot`` is the estimator's belief of the robot (its masses, inertias and sensor
+    placements); ``layout`` the nominal thruster layout (the filter's prior). Feed
+    :data:`SAMPLE_DTYPE` rows in arrival order (:func:`sample_rows` turns driver samples into
+    rows); every call returns the effort rows of the epochs it completed, in time order.
+    :meth:`efforts` turns rows into the published objects.
+    """
+
+    def __init__(self, robot: Robot, *, layout: ThrusterLayout | None = None, settings: CoreSettings | None = None):
+        s = self.settings = settings or CoreSettings()
+        self.robot = robot
+        model = self.model = EstimatorModel.from_robot(robot)
+        self.layout = layout or ThrusterLayout.named()
+        arm_lay, sc_lay = wire.layouts("arm"), wire.layouts("spacecraft")
+        period = arm_lay[wire.FT_A_ID].cycle_ms * 1_000_000
+        imu_period = sc_lay[wire.IMU_TIME_ID].cycle_ms * 1_000_000
+        self.period_ns = period
+        p, nj = model.n_arms, model.n_joints
+        self.n_arms, self.n_joints = p, nj
+        self.arms = [a.name for a in robot.arms]
+        self.arm_joints = [tuple(f"{a.name}/{j}" for j in a.joint_names) for a in robot.arms]
+        self.joint_names = [j for names in self.arm_joints for j in names]
+        self.joint_index = {j: i for i, j in enumerate(self.joint_names)}
+        self.arm_index = {a: i for i, a in enumerate(self.arms)}
+        self.flag_names = flag_names(robot)
+        self.dtype = effort_dtype(p, nj, len(self.flag_names))
+        self.cfg = np.array([period, period // 2, p, nj, imu_period, s.stale_periods * imu_period, s.max_open,
+                             PHASE_LEARN_SAMPLES, PHASE_TRACK, wire.FT_FAULT, wire.IMU_FAULT, wire.DRIVE_FAULT],
+                            dtype=np.int64)
+        cap = s.max_open + 8
+        si = np.zeros(_N_SI, dtype=np.int64)
+        si[_LEARNING] = 1
+        si[_LAST_CLOSED] = -(1 << 62)
+        nj1 = max(nj, 1)
+        arrays = ck.pack(model)
+        L = arrays.link.shape[1]
+        self.kf = tk.CompiledThrusterFilter(model, self.layout, dt=period * 1e-9,
+                                            imu_steps=max(1, imu_period // period), settings=s.thrusters)
+        kf = self.kf
+        packed = ViewLayout([
+            si, self.cfg, np.zeros((cap, 4), dtype=np.int64), np.zeros((cap, 3 + 3 * p + 3 * nj), dtype=np.int64),
+            np.zeros((nj1, 2), dtype=np.int64),                                       # 0-4
+            np.zeros((cap, p, 6)), np.zeros((cap, nj1, 2)), np.zeros((nj1, 3)), np.zeros(nj1), np.zeros(6),  # 5-9
+            arrays.arm_n, arrays.arm_col, arrays.sensor, arrays.link, arrays.base,   # 10-14
+            np.array(ck.WEIGHTS, dtype=float), np.array([-1.0]),                    # 15-16
+            *ck._scratch(p, L),                                                      # 17-25
+            *kf.state,                                                               # 26-35
+            np.zeros((p, 6)), np.zeros((4, 6)), np.zeros((1, nj1)),                  # 36-38
+        ])
+        self._I, self._F, self._lay = packed.I, packed.F, packed.lay
+        self._si = packed.views[0]
+        # the filter object works on the same memory as the kernels (W, efficiency, updates)
+        kf.share(packed.views[26:36])
+        self._held = np.zeros(s.held_capacity, dtype=SAMPLE_DTYPE)
+        self._pend = np.zeros(s.pending_capacity, dtype=SAMPLE_DTYPE)
+        self._cap = cap
+        self._out = np.zeros(0, dtype=self.dtype)
+        # flags -> published tuples: per arm the bits it reports, in the order of their sorted names
+        common = list(range(_N_COMMON + 3 * p))
+        self._arm_bits = []
+        for a, names in enumerate(self.arm_joints):
+            bits = common + [_N_COMMON + 3 * p + 4 * self.joint_index[j] + k for j in names for k in range(4)]
+            self._arm_bits.append(np.array(sorted(bits, key=lambda b: self.flag_names[b]), dtype=np.int64))
+        self._thr_bits = np.array(sorted(common, key=lambda b: self.flag_names[b]), dtype=np.int64)
+        self._flag_cache: dict = {}
+
+    # -- counters ------------------------------------------------------------------------------
+    @property
+    def epochs(self) -> int:
+        return int(self._si[_EPOCHS])
+
+    @property
+    def good(self) -> int:
+        return int(self._si[_GOOD])
+
+    @property
+    def late(self) -> int:
+        return int(self._si[_LATE])
+
+    # -- input ---------------------------------------------------------------------------------
+    def _reserve(self, n_samples: int) -> None:
+        # epochs one call can complete: the open ones plus one per member sample fed, held ones too
+        need = self._cap + 2 * n_samples + int(self._si[_N_HELD]) + 1
+        if self._out.shape[0] < need:
+            self._out = np.zeros(max(need, 2 * self._out.shape[0]), dtype=self.dtype)
+
+    def feed(self, samples: np.ndarray) -> np.ndarray:
+        """Sample rows (:data:`SAMPLE_DTYPE`) in arrival order -> the effort rows they completed
+        (a view of an internal buffer, valid until the next call)."""
+        self._reserve(len(samples))
+        n = feed_kernel(self._I, self._F, self._lay, self._held, self._pend, samples, self._out)
+        return self._out[:n]
+
+    def flush(self) -> np.ndarray:
+        """End of input: compute every waiting epoch with what it has (rows valid until the next call)."""
+        self._reserve(0)
+        n = flush_kernel(self._I, self._F, self._lay, self._held, self._pend, self._out)
+        return self._out[:n]
+
+    # -- output --------------------------------------------------------------------------------
+    def _flags(self, row_flags: np.ndarray, bits: np.ndarray, which: int) -> tuple[str, ...]:
+        sel = row_flags[bits]
+        key = (which, sel.tobytes())
+        out = self._flag_cache.get(key)
+        if out is None:
+            out = tuple(self.flag_names[b] for b, on in zip(bits.tolist(), sel.tolist()) if on)
+            if len(self._flag_cache) < 65536:
+                self._flag_cache[key] = out
+        return out
+
+    def efforts(self, rows: np.ndarray) -> list:
+        """The published objects of effort rows: per row one :class:`JointEfforts` per arm, then
+        one :class:`ThrusterEffort`."""
+        from drivers.frames import builder
+        from gateway.efforts import JointEfforts, ThrusterEffort
+
+        make_j, make_t = builder(JointEfforts), builder(ThrusterEffort)
+        out = []
+        col = 0
+        spans = []
+        for a, names in enumerate(self.arm_joints):
+            spans.append((self.arms[a], names, col, col + len(names), self._arm_bits[a], a))
+            col += len(names)
+        for r in rows:
+            t = int(r["t_ns"])
+            fl = r["flags"]
+            full, simp, rate = r["full_nm"].tolist(), r["simplified_nm"].tolist(), r["rate_rad_s"].tolist()
+            cmd, cmd_have, cmd_t = r["commanded_nm"].tolist(), r["commanded_have"].tolist(), r["commanded_t_ns"].tolist()
+            for arm, names, lo, hi, bits, a in spans:
+                flags = self._flags(fl, bits, a)
+                have = all(cmd_have[lo:hi])
+                out.append(make_j(arm, t, names, tuple(full[lo:hi]), tuple(simp[lo:hi]),
+                                  tuple(cmd[lo:hi]) if have else (), min(cmd_t[lo:hi]) if have else 0,
+                                  tuple(rate[lo:hi]), not flags, flags))
+            flags = self._flags(fl, self._thr_bits, -1)
+            thr = r["thruster"].tolist()
+            have = bool(r["thruster_cmd_have"])
+            tc = r["thruster_cmd"].tolist()
+            out.append(make_t(t, tuple(thr[:3]), tuple(thr[3:]),
+                              tuple(tc[:3]) if have else (0.0, 0.0, 0.0), tuple(tc[3:]) if have else (0.0, 0.0, 0.0),
+                              int(r["thruster_cmd_t_ns"]) if have else 0, int(r["thruster_cmd_valves"]) if have else 0,
+                              not flags, flags))
+        return out
+
+
+def sample_rows(samples, joint_index: dict[str, int], arm_index: dict[str, int]) -> np.ndarray:
+    """Driver samples (:mod:`drivers.samples`) -> :data:`SAMPLE_DTYPE` rows, in order. Torque
+    commands of joints the model does not have are left out."""
+    from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
+
+    rows = np.zeros(len(samples), dtype=SAMPLE_DTYPE)
+    n = 0
+    for s in samples:
+        r = rows[n]
+        cls = s.__class__
+        if cls is WrenchSample:
+            r["kind"], r["device"] = WRENCH, arm_index[s.device]
+            r["values"][:6] = (*s.force_n, *s.torque_nm)
+            r["saturated"], r["status"] = s.saturated, s.status
+        elif cls is JointSample:
+            r["kind"], r["device"] = JOINT, joint_index[s.device]
+            r["values"][:2] = (s.angle_rad, s.rate_rad_s)
+            r["saturated"], r["status"] = s.saturated, s.status
+        elif cls is TorqueCommand:
+            j = joint_index.get(s.device)
+            if j is None:
+                continue
+            r["kind"], r["device"] = TORQUE_CMD, j
+            r["values"][0] = s.torque_nm
+            r["saturated"] = s.saturated
+        elif cls is ImuSample:
+            r["kind"] = IMU
+            r["values"][:] = (*s.quat_wxyz, *s.rate_rad_s, *s.accel_m_s2)
+            r["saturated"], r["status"] = s.saturated, s.status
+        elif cls is ThrusterCommand:
+            r["kind"] = THRUSTER_CMD
+            r["values"][:6] = (*s.force_n, *s.moment_nm)
+            r["valves"], r["saturated"] = s.valves, s.saturated
+        elif cls is ValveCommand:
+            r["kind"], r["valves"] = VALVES, s.valves
+        else:
+            continue
+        r["t_ns"] = s.t_ns
+        n += 1
+    return rows[:n]
