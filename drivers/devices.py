@@ -13,7 +13,7 @@ calls ``on_error``, which logs it).
 
 Multi-frame samples (F/T 2 frames, IMU 6, thruster command 3) are assembled by counter in any
 order, and complete only when every part carries the same counter. The completed sample's
-``t_ns`` is the timestamp of the frame that completed it.
+``t_ns`` is the timestamp of its first frame (closest to when the device sampled).
 """
 from __future__ import annotations
 

@@ -37,6 +37,7 @@ REASONS = ("error_frame", "extended_id", "unknown_id", "dlc", "remote_frame", "f
 DEFAULT_STALE_PERIODS = 10
 RESYNC_PERIODS = 100   # a device silent for longer has resumed: trust the time, not the counter alone
 DEVICE_CLOCK_WRAP_NS = (1 << 32) * 1000     # a device's u32 microsecond sample time wraps after 71.6 min
+MAX_RATE = 1e6         # device seconds per second: beyond, no source (a million times real time)
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,8 +57,9 @@ class SourceTiming:
     stale_periods: int = DEFAULT_STALE_PERIODS
 
     def __post_init__(self) -> None:
-        if self.rate is not None and not (math.isfinite(self.rate) and self.rate > 0):
-            raise ValueError(f"source rate {self.rate!r}: must be a positive number of device seconds per second")
+        if self.rate is not None and not (math.isfinite(self.rate) and 0 < self.rate <= MAX_RATE):
+            raise ValueError(f"source rate {self.rate!r}: must be a positive number of device seconds per "
+                             f"second, at most {MAX_RATE:g}")
         if self.stale_periods < 1:
             raise ValueError(f"stale periods {self.stale_periods!r}: must be at least 1")
 
@@ -132,7 +134,9 @@ class DeviceCounters:
                             self.lost_at_least = True
                         else:
                             n = d + 256 * max(0, round((steps - d) / 256))
-                        self.lost += max(n, 1) - 1
+                            if n == 0:               # the sample is kept, so it is a new one:
+                                n = 256              # an unmoved counter means 256 periods on
+                        self.lost += n - 1
                         self.last_counter = counter
                         if device_ns is not None:
                             self.last_device_ns = device_ns

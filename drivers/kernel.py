@@ -256,9 +256,6 @@ def _sequence(ds, counter, t_ns, device_ns, ci, cf):
                         n = d if d != 0 else 256
                         ds.lost_at_least = 1
                     else:
-                        # mirrors Python, including its corner: d == 0 over 100..128 periods
-                        # rounds to n = 0, and the sample is kept with 0 lost although it is
-                        # either a duplicate or 256 periods later (reported, not fixed here)
                         x = np.rint((steps - d) / 256.0)   # Python's round(): half to even
                         # beyond 2**52 multiples of 256 (a rate so large that a silence spans
                         # more periods than int64 counts) Python's exact ints cannot be followed
@@ -266,7 +263,9 @@ def _sequence(ds, counter, t_ns, device_ns, ci, cf):
                             x = 4503599627370496.0
                         k = np.int64(x) if x > 0 else 0
                         n = d + 256 * k
-                    ds.lost += max(n, 1) - 1
+                        if n == 0:                 # a kept sample is a new one: 256 periods on
+                            n = 256
+                    ds.lost += n - 1
                     ds.last_counter = counter
                     if device_ns >= 0:
                         ds.last_device_ns = device_ns

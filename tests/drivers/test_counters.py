@@ -144,3 +144,17 @@ def test_health_reports_a_lower_bound():
 def test_timing_rejects_a_meaningless_rate(bad):
     with pytest.raises(ValueError, match="source rate"):
         SourceTiming(rate=bad)
+
+
+def test_an_unmoved_counter_after_a_silence_went_round_once():
+    """A sample kept after a silence is a new one: a counter that did not move over 110 periods
+    went round once (255 lost), not 0 (a duplicate would not be kept after a silence)."""
+    dev = DeviceCounters("arm0", "arm0", MS)
+    feed(dev, range(10))
+    assert dev.admit(9, (9 + 110) * MS, False, 0) is True
+    assert dev.lost == 255 and not dev.rejected
+
+
+def test_timing_rejects_an_absurd_rate():
+    with pytest.raises(ValueError, match="at most"):
+        SourceTiming(rate=1e300)

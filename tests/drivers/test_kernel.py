@@ -319,12 +319,13 @@ def test_resync_by_device_clock_and_staleness_knob():
 
 def test_resync_rounding_ties_and_a_repeated_counter():
     """Python's round() (half to even) in the resync count, and the corner where the counter did
-    not move over 100..128 periods (the Python rule accepts it, 0 lost: mirrored, see the report)."""
+    not move over 100..128 periods: the sample is kept after a silence, so it is a new one and
+    the counter went round once (255 lost), never 0 lost."""
     from drivers import frames
     from drivers.samples import JointSample
 
     wm = fuzz_drivers.wire_map_for("paper_robot")
-    # (counter, ms): steps - d = 128 -> 0.5 -> 0; d = 0 over 110 periods -> n = 0; steps - d = 384 -> 1.5 -> 2
+    # (counter, ms): steps - d = 128 -> 0.5 -> 0; d = 0 over 110 periods -> n = 256; steps - d = 384 -> 1.5 -> 2
     seq = [(0, 0), (1, 1), (73, 201), (73, 311), (83, 705), (84, 706)]
     pairs = []
     for c, ms in seq:
@@ -333,7 +334,7 @@ def test_resync_rounding_ties_and_a_repeated_counter():
         pairs.append((0, m))
     core, _ = check_same(wm, pairs, pieces=len(seq))
     j1 = core.health(706 * MS)[1][core.device_names.index("arm0/j1")]
-    assert (j1.samples, j1.lost, j1.rejected) == (6, 71 + 0 + 521, ())
+    assert (j1.samples, j1.lost, j1.rejected) == (6, 71 + 255 + 521, ())
 
 
 # --- batch-size independence and state ----------------------------------------------------------
