@@ -1,26 +1,34 @@
 """Drivers and estimator in one single-threaded core: raw CAN frames in, everything out.
 
 :class:`Pipeline` is what ``bsc gateway`` runs behind its buses, what ``bsc replay`` runs over a
-recorded log and what ``bsc demo`` and the simulated series run in lockstep. Frames are fed one
-at a time, in arrival order, with the bus they came from; every decoded sample, every computed
-effort and (on request) every health report goes to ``emit(key, obj)`` synchronously, with the
-zenoh key of :mod:`gateway.keys`. Nothing here does I/O or owns a thread, so the same frames in
-the same order always give the same emits (the estimator's sync policy also makes the result
-independent of how buses interleave: see :mod:`gateway.estimator.live`).
+recorded log and what ``bsc demo`` and the simulated series run in lockstep. Both halves are
+compiled kernels that keep all their state in arrays (:class:`drivers.kernel.DriverCore`,
+:class:`gateway.estimator.core.EstimatorCore`), so frames may be fed one at a time
+(:meth:`Pipeline.feed`, the live gateway) or as arrays of any length
+(:meth:`Pipeline.feed_frames`, a replay): the same frames in the same order give the same samples
+and the same efforts, bit for bit, whatever the split (the estimator's sync policy also makes
+the result independent of how buses interleave: see :mod:`gateway.estimator.core`).
+
+Every decoded sample, every computed effort and (on request) every health report goes to
+``emit(key, obj)`` synchronously, with the zenoh key of :mod:`gateway.keys`; within one call the
+samples come first, then the efforts they completed (one frame per call: exactly the order of
+the first wave). While ``emit`` runs, :attr:`Pipeline.log_ns` is the timestamp of the frame
+that produced the object (its log time in a recording). Nothing here does I/O or owns a thread.
 """
 from __future__ import annotations
 
 from typing import Callable
 
 import can
+import numpy as np
 
 from drivers import wire
-from drivers.devices import BusDispatcher, listeners_for
 from drivers.health import DEFAULT_TIMING, SourceTiming
+from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE, DriverCore
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import keys
 from gateway.efforts import JointEfforts, ThrusterEffort
-from gateway.estimator.live import LiveEstimator, LiveSettings
+from gateway.estimator.core import CoreSettings, EstimatorCore
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
@@ -30,47 +38,109 @@ _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "devi
              ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None}
 
 
+class PipelineError(ValueError):
+    """The pipeline cannot be built as asked (a model that is not the robot's, ...)."""
+
+
 class Pipeline:
     """``Pipeline(robot, emit=...)``; ``model_robot`` is the gateway's belief of the robot (default
-    ``robot``: e.g. :func:`robot_description.perturbed` for a deliberately wrong model);
-    ``timing``: how frame timestamps relate to the devices' clocks (:class:`drivers.health.SourceTiming`)."""
+    ``robot``: e.g. :func:`robot_description.perturbed` for a deliberately wrong model), with the
+    robot's arms and joints; ``layout`` the nominal thruster layout (the filter's prior);
+    ``timing``: how frame timestamps relate to the devices' clocks
+    (:class:`drivers.health.SourceTiming`); ``samples=False`` leaves decoded samples out of the
+    emits (they are still decoded, counted and estimated from)."""
 
     def __init__(self, robot: Robot, *, emit: Emit, model_robot: Robot | None = None,
                  layout: ThrusterLayout | None = None, fd: bool = False, estimate: bool = True,
-                 settings: LiveSettings | None = None, timing: SourceTiming = DEFAULT_TIMING):
+                 settings: CoreSettings | None = None, timing: SourceTiming = DEFAULT_TIMING,
+                 samples: bool = True):
         self.robot = robot
         self.wire = wire.WireMap.from_robot(robot)
         self.name = self.wire.robot
         self.buses = list(self.wire.buses)
+        self._bus_index = {b: i for i, b in enumerate(self.buses)}
         self.emit = emit
-        self._listeners = {}
-        for name, spec in self.wire.buses.items():
-            monitor, drivers = listeners_for(spec, self._on_sample, fd, timing)
-            self._listeners[name] = [monitor, *drivers]
-        self.monitors = {b: ls[0] for b, ls in self._listeners.items()}
-        self._feeders = {b: BusDispatcher(ls[0], ls[1:]).feed for b, ls in self._listeners.items()}
-        self.estimator = (LiveEstimator(model_robot or robot, self._on_effort, layout=layout, settings=settings)
-                          if estimate else None)
-        self._add = self.estimator.add if self.estimator is not None else None
+        self.emit_samples = samples
+        self.drivers = DriverCore(self.wire, fd=fd, timing=timing)
+        model = model_robot or robot
+        if [(a.name, tuple(a.joint_names)) for a in model.arms] != [(a.name, tuple(a.joint_names)) for a in robot.arms]:
+            raise PipelineError(f"the model {model.name!r} must have the arms and joints of the robot {robot.name!r}")
+        self.estimator = EstimatorCore(model, layout=layout, settings=settings) if estimate else None
+        self._one = np.zeros(1, dtype=FRAME_DTYPE)
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
+        self.log_ns = 0
+        self._unknown = 0
         self.frames = 0
-        self.unknown_bus = 0
         self.samples = 0
         self.efforts = 0
 
+    @property
+    def unknown_bus(self) -> int:
+        """Frames fed for a bus this robot does not have (counted, never decoded)."""
+        return self._unknown + self.drivers.unknown_bus
+
+    # -- input ---------------------------------------------------------------------------------
     def feed(self, bus: str, msg: can.Message) -> None:
         """One raw frame from ``bus``. Never raises on bad frames (they are counted by reason)."""
-        feeder = self._feeders.get(bus)
-        if feeder is None:
-            self.unknown_bus += 1
+        i = self._bus_index.get(bus)
+        if i is None:
+            self._unknown += 1
             return
-        self.frames += 1
-        feeder(msg)
+        r = self._one[0]
+        r["t_ns"] = round(msg.timestamp * 1e9)
+        aid = msg.arbitration_id
+        r["can_id"] = aid if 0 <= aid <= 0xFFFFFFFF else 0xFFFFFFFF
+        r["bus"] = i
+        r["flags"] = ((FLAG_EXTENDED if msg.is_extended_id else 0) | (FLAG_REMOTE if msg.is_remote_frame else 0)
+                      | (FLAG_ERROR if msg.is_error_frame else 0) | (FLAG_FD if msg.is_fd else 0)
+                      | (FLAG_BRS if msg.bitrate_switch else 0))
+        dlc = msg.dlc
+        r["dlc"] = dlc if 0 <= dlc <= 255 else 255
+        data = msg.data
+        n = len(data) if data is not None else 0
+        if n > 255:                          # not a CAN frame: only its length would be read
+            n = 255
+        r["length"] = n
+        d = r["data"]
+        d[:] = 0
+        if n:
+            d[:min(n, 8)] = np.frombuffer(bytes(data[:8]), dtype=np.uint8)
+        self.feed_frames(self._one)
+
+    def feed_frames(self, frames: np.ndarray) -> None:
+        """Frames as :data:`drivers.kernel.FRAME_DTYPE` rows (``bus`` = index into
+        :attr:`buses`), in arrival order."""
+        self.frames += len(frames)
+        events = self.drivers.feed(frames)
+        if not len(events):
+            return
+        emit, t_frame = self.emit, frames["t_ns"]
+        self.samples += len(events)
+        if self.emit_samples:
+            frame_of = events["frame"].tolist()
+            for k, obj in enumerate(self.drivers.to_samples(events)):
+                self.log_ns = int(t_frame[frame_of[k]])
+                emit(self._key(obj), obj)
+        est = self.estimator
+        if est is not None:
+            rows = est.feed(events)
+            if len(rows):
+                self._emit_efforts(rows, t_frame[events["frame"][rows["cause"]]].tolist())
 
     def flush(self) -> None:
-        """End of input: compute the epochs still waiting for members."""
+        """End of input: compute the epochs still waiting for members (log time: the last frame's)."""
         if self.estimator is not None:
-            self.estimator.flush()
+            rows = self.estimator.flush()
+            if len(rows):
+                self._emit_efforts(rows, [self.log_ns] * len(rows))
+
+    def _emit_efforts(self, rows: np.ndarray, log_ns: list[int]) -> None:
+        n_per_row = self.estimator.n_arms + 1
+        emit = self.emit
+        for k, obj in enumerate(self.estimator.efforts(rows)):
+            self.log_ns = log_ns[k // n_per_row]
+            self.efforts += 1
+            emit(self._key(obj), obj)
 
     def _key(self, obj) -> str:
         """``keys.for_sample`` (each key expression is built and checked once, then cached)."""
@@ -84,24 +154,10 @@ class Pipeline:
             key = self._keys[k] = keys.for_sample(self.name, obj)
         return key
 
-    def _on_sample(self, sample) -> None:
-        self.samples += 1
-        self.emit(self._key(sample), sample)
-        if self._add is not None:
-            self._add(sample)
-
-    def _on_effort(self, effort) -> None:
-        self.efforts += 1
-        self.emit(self._key(effort), effort)
-
+    # -- health --------------------------------------------------------------------------------
     def health(self, now_ns: int) -> list:
         """Snapshots of every bus and device (resets the measured-load window)."""
-        out = []
-        for listeners in self._listeners.values():
-            out.append(listeners[0].health(now_ns))
-            for d in listeners[1:]:
-                out.extend(d.health(now_ns))
-        return out
+        return self.drivers.health_list(now_ns)
 
     def emit_health(self, now_ns: int) -> None:
         for h in self.health(now_ns):

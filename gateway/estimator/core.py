@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from drivers import wire
+from drivers import kernel, wire
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
@@ -47,22 +47,14 @@ from .thrusters import ThrusterFilterSettings
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy")
 
-# sample kinds (SAMPLE_DTYPE["kind"])
-WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = 0, 1, 2, 3, 4, 5
-N_VALUES = 10
-
-SAMPLE_DTYPE = np.dtype([
-    ("kind", np.int64),       # WRENCH .. VALVES
-    ("device", np.int64),     # arm index (WRENCH), joint index (JOINT, TORQUE_CMD), else 0
-    ("t_ns", np.int64),       # the sample's timestamp (its first frame)
-    ("saturated", np.int64),  # 0 / 1
-    ("status", np.int64),     # the device's status word
-    ("valves", np.int64),     # THRUSTER_CMD, VALVES: the valve mask
-    ("values", np.float64, (N_VALUES,)),
-])
-"""One decoded sample. ``values``: WRENCH force (3, N) torque (3, N m), sensor frame; JOINT angle
-(rad), rate (rad/s); TORQUE_CMD torque (N m); IMU quaternion w x y z, rate (3, rad/s), specific
-force (3, m/s^2), IMU frame; THRUSTER_CMD force (3, N), moment (3, N m)."""
+# sample kinds and rows: the compiled drivers' events (drivers/kernel.py EVENT_DTYPE)
+WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = (kernel.WRENCH, kernel.JOINT, kernel.TORQUE, kernel.IMU,
+                                                        kernel.THRUSTER, kernel.VALVE)
+SAMPLE_DTYPE = kernel.EVENT_DTYPE
+"""One decoded sample (:data:`drivers.kernel.EVENT_DTYPE`). ``values``: WRENCH force (3, N) torque
+(3, N m), sensor frame; JOINT angle (rad), rate (rad/s); TORQUE_CMD torque (N m); IMU quaternion
+w x y z, rate (3, rad/s), specific force (3, m/s^2), IMU frame; THRUSTER_CMD force (3, N), moment
+(3, N m). ``device``: arm index (WRENCH), joint index (JOINT, TORQUE_CMD)."""
 
 PHASE_LEARN_SAMPLES = 64     # members held at start to find where the sensor bursts sit in a period
 PHASE_TRACK = 64             # the grid follows the bursts' middle with this time constant (epochs)
@@ -70,8 +62,8 @@ PHASE_TRACK = 64             # the grid follows the bursts' middle with this tim
 # the scalar state (SI array)
 _CENTER, _HAVE_CENTER, _LAST_CLOSED, _EPOCHS, _GOOD, _LATE, _N_OPEN, _N_PEND, _N_HELD, _LEARNING, \
     _LEARN_MEMBERS, _GYRO_T, _HAVE_GYRO, _FAULTS, _THR_HAVE, _THR_T, _THR_VALVES, _N_OUT, _PEND_DROPPED, \
-    _HELD_DROPPED = range(20)
-_N_SI = 20
+    _HELD_DROPPED, _CAUSE = range(21)
+_N_SI = 21
 
 # the common flags (bits 0..4 of a flag row), then 3 per arm, then 4 per joint
 F_WARMUP, F_STALE_IMU, F_MISSING_VALVES, F_SAT_IMU, F_FAULT_IMU = range(5)
@@ -114,6 +106,7 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
         ("thruster_cmd_valves", np.int64),
         ("thruster_cmd_have", np.int64),
         ("flags", np.uint8, (n_flags,)),
+        ("cause", np.int64),                    # the input row whose arrival computed it (-1: flush)
     ])
 
 
@@ -442,6 +435,7 @@ def _compute(si, cfg, et, ei, eft, ej, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
     if ft_trusted and ei[0] != 0:
         tk.push_epoch(tf[5], tf[6], tf[7], tf[8], t, arm_w, mask)
     row["t_ns"] = t
+    row["cause"] = si[_CAUSE]
     for j in range(nj):
         row["rate_rad_s"][j] = jstate[j, 1]
         row["commanded_nm"][j] = jcmd[j]
@@ -520,6 +514,7 @@ def feed_kernel(I, F, lay, held, pend, samples, out):
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
     si[_N_OUT] = 0
     for k in range(samples.shape[0]):
+        si[_CAUSE] = k
         if _add(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i,
                 thr_cmd, chain, tf, scratch):
             _lock_phase(si, cfg, held)
@@ -533,6 +528,7 @@ def flush_kernel(I, F, lay, held, pend, out):
     """End of input: every waiting epoch computed with what it has; returns the rows written."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
     si[_N_OUT] = 0
+    si[_CAUSE] = -1
     if si[_LEARNING] != 0:
         _lock_phase(si, cfg, held)
         _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
