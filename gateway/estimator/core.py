@@ -46,6 +46,7 @@ from .model import EstimatorModel
 from .thrusters import ThrusterFilterSettings
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy")
+_inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always")
 
 # sample kinds and rows: the compiled drivers' events (drivers/kernel.py EVENT_DTYPE)
 WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = (kernel.WRENCH, kernel.JOINT, kernel.TORQUE, kernel.IMU,
@@ -112,7 +113,7 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
 
 # --- the compiled state machine -------------------------------------------------------------------
 
-@_jit
+@_inl
 def _grid(si, period, half, t):
     c = si[_CENTER]
     return c + ((t - c + half) // period) * period
@@ -166,17 +167,11 @@ def _lock_phase(si, cfg, held):
 
 
 @_jit
-def _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
-                 chain, tf, scratch):
-    n = si[_N_HELD]
-    si[_N_HELD] = 0
-    for k in range(n):
-        _add(si, cfg, held, held[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
-             chain, tf, scratch)
-
-
-@_jit
-def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend):
+    """Put one sample where it belongs. Returns how many of the first open epochs are ready to be
+    computed (:func:`_compute_ready`), or -1 when the grid's phase can now be placed and the held
+    samples fed again. (Only the arrays it needs: numba counts references of every array passed
+    to a function that is not inlined, and this runs for every sample.)"""
     kind = s["kind"]
     if si[_LEARNING] != 0:
         n = si[_N_HELD]
@@ -188,7 +183,7 @@ def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcm
         if kind == WRENCH or kind == JOINT or kind == VALVES:
             si[_LEARN_MEMBERS] += 1
             if si[_LEARN_MEMBERS] >= cfg[7]:
-                return 1                     # the caller locks the phase and replays the held samples
+                return -1                    # the caller locks the phase and replays the held samples
         return 0
     if kind == IMU or kind == TORQUE_CMD or kind == THRUSTER_CMD:
         n = si[_N_PEND]
@@ -218,9 +213,7 @@ def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcm
     if e < 0:
         if g <= si[_LAST_CLOSED] + half:
             si[_LATE] += 1                   # too late to be used: only the max_open rule applies
-            _advance(si, cfg, -1, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
-                     chain, tf, scratch)
-            return 0
+            return _ready(si, cfg, -1, ep_i)
         k = n_open
         if n_open > 0 and ep_t[n_open - 1, 0] >= g:
             k = 0
@@ -263,11 +256,10 @@ def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcm
     else:
         ep_i[e, 0] = 1
         ep_i[e, 1] = s["valves"]
-    _advance(si, cfg, e, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch)
-    return 0
+    return _ready(si, cfg, e, ep_i)
 
 
-@_jit
+@_inl
 def _complete(cfg, ep_i, e):
     p, nj = cfg[2], cfg[3]
     if ep_i[e, 0] == 0:
@@ -281,32 +273,34 @@ def _complete(cfg, ep_i, e):
     return True
 
 
-@_jit
-def _advance(si, cfg, touched, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
-             scratch):
+@_inl
+def _ready(si, cfg, touched, ep_i):
     # Every open epoch but ``touched`` was incomplete after its last change (complete ones are
-    # computed at once), so the last complete one, if any, is ``touched``.
+    # computed at once), so the last complete one, if any, is ``touched``; beyond max_open the
+    # oldest go anyway.
     n_open = si[_N_OPEN]
     last = touched if (touched >= 0 and _complete(cfg, ep_i, touched)) else -1
     max_open = cfg[6]
     if n_open - (last + 1) > max_open:
         last = n_open - max_open - 1
-    if last < 0:
-        return
-    nready = last + 1
-    # take the ready epochs out first (as the Python form did: computing one may not touch the rest)
-    rt = ep_t[:nready].copy()
-    ri = ep_i[:nready].copy()
-    rf = ep_ft[:nready].copy()
-    rj = ep_j[:nready].copy()
+    return last + 1
+
+
+@_jit
+def _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+                   scratch):
+    """Compute the first ``nready`` open epochs in time order, in place (a computation reads only
+    its own epoch's rows), then move the rest down."""
+    n_open = si[_N_OPEN]
+    for r in range(nready):
+        _compute(si, cfg, ep_t[r], ep_i[r], ep_ft[r], ep_j[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
+                 tf, scratch)
     for r in range(nready, n_open):
         ep_t[r - nready] = ep_t[r]
         ep_i[r - nready] = ep_i[r]
         ep_ft[r - nready] = ep_ft[r]
         ep_j[r - nready] = ep_j[r]
     si[_N_OPEN] = n_open - nready
-    for r in range(nready):
-        _compute(si, cfg, rt[r], ri[r], rf[r], rj[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch)
 
 
 @_jit
@@ -508,6 +502,30 @@ def _views(I, F, lay):
     return si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch
 
 
+@_inl
+def _feed_one(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+    nready = _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend)
+    if nready > 0:
+        _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
+                       tf, scratch)
+    elif nready < 0:
+        _lock_phase(si, cfg, held)
+        _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+                     scratch)
+
+
+@_jit
+def _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+                 scratch):
+    n = si[_N_HELD]
+    si[_N_HELD] = 0
+    for k in range(n):                     # learning is over: none of these is held again
+        nready = _add(si, cfg, held, held[k], ep_t, ep_i, ep_ft, ep_j, pend)
+        if nready > 0:
+            _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                           chain, tf, scratch)
+
+
 @_jit
 def feed_kernel(I, F, lay, held, pend, samples, out):
     """Sample rows in arrival order; returns the number of effort rows written to ``out``."""
@@ -515,11 +533,8 @@ def feed_kernel(I, F, lay, held, pend, samples, out):
     si[_N_OUT] = 0
     for k in range(samples.shape[0]):
         si[_CAUSE] = k
-        if _add(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i,
-                thr_cmd, chain, tf, scratch):
-            _lock_phase(si, cfg, held)
-            _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
-                         chain, tf, scratch)
+        _feed_one(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                  chain, tf, scratch)
     return si[_N_OUT]
 
 
@@ -531,18 +546,10 @@ def flush_kernel(I, F, lay, held, pend, out):
     si[_CAUSE] = -1
     if si[_LEARNING] != 0:
         _lock_phase(si, cfg, held)
-        _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
-                     chain, tf, scratch)
-    n_open = si[_N_OPEN]
-    if n_open > 0:
-        rt = ep_t[:n_open].copy()
-        ri = ep_i[:n_open].copy()
-        rf = ep_ft[:n_open].copy()
-        rj = ep_j[:n_open].copy()
-        si[_N_OPEN] = 0
-        for r in range(n_open):
-            _compute(si, cfg, rt[r], ri[r], rf[r], rj[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
+        _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
                      scratch)
+    _compute_ready(si, cfg, si[_N_OPEN], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
+                   tf, scratch)
     return si[_N_OUT]
 
 
