@@ -321,7 +321,7 @@ def role_gateway(a) -> int:
         session = stack.enter_context(zenoh.open(conf))
         gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate,
                             publish_samples=not a.no_samples, receive=a.receive)
-        pipe = gw.pipeline
+        pipe = gw.engine.pipeline                         # its emit: the session's fan-out to the gateway
         emit0 = pipe.emit
         if a.bare:
             names = ["frame arrival", "effort emitted", "put returned"]
@@ -330,7 +330,7 @@ def role_gateway(a) -> int:
                 if "/efforts/" in key:
                     t = tn()
                     emit0(key, obj)
-                    efforts.append((key, obj.t_ns, gw._frame_ns, t, tn()))
+                    efforts.append((key, obj.t_ns, pipe.log_ns, t, tn()))
                 else:
                     emit0(key, obj)
         else:
@@ -349,7 +349,7 @@ def role_gateway(a) -> int:
 
             for bus in buses.values():
                 bus.recv = timed_recv(bus)
-            feed0 = pipe.feed
+            feed0 = gw.engine.feed
 
             def feed(bus, msg):
                 t = tn()
@@ -366,7 +366,7 @@ def role_gateway(a) -> int:
                     efforts.append((key, obj.t_ns, cur[0], cur[1], cur[2], t, tn()))
                 else:
                     emit0(key, obj)
-            pipe.feed = feed                              # the worker binds it when it starts
+            gw.engine.feed = feed                         # the worker binds it when it starts
         pipe.emit = emit
         ticks: list[tuple[int, int, int]] = []
         tick0 = gw.on_tick

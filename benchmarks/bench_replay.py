@@ -31,23 +31,28 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 class DriversOnly:
     """Stand-in pipeline: the real drivers, no estimator (engine ceiling, not the target)."""
 
-    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None):
+    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None, **_pipeline_options):
         from drivers.devices import listeners_for
         from drivers.wire import WireMap
         from gateway import keys
 
         wm = WireMap.from_robot(robot)
         self.buses = list(wm.buses)
-        name = robot.name
+        self.name = name = robot.name
+        self.log_ns = 0
+        self.stats: dict = {}
         sink = lambda s: emit(keys.for_sample(name, s), s)  # noqa: E731
         self._ls = {}
         for b, spec in wm.buses.items():
             mon, drivers = listeners_for(spec, sink, fd)
             self._ls[b] = [mon, *drivers]
 
-    def feed(self, bus, msg):
+    def feed(self, bus, msg, log_ns=None):
         for listener in self._ls[bus]:
             listener.on_message_received(msg)
+
+    def flush(self):
+        pass
 
     def health(self, now_ns):
         out = []

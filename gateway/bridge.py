@@ -9,7 +9,7 @@ publishers it creates. Lifecycle::
     # close(): notifiers stopped, worker drained, publishers undeclared (harmless twice)
 
 Threads. ONE worker thread takes the frames, in arrival order per bus, through
-:class:`gateway.pipeline.Pipeline` (drivers, then the estimator) and publishes what comes out:
+:class:`gateway.engine.Session` (drivers, then the estimator) and publishes what comes out:
 efforts and health at once; decoded samples once the step's efforts are out or no frame is
 waiting (so a step's efforts never wait behind its samples' publishing; without the estimator,
 at once). The recorder (``record=``) gets the raw frames in exactly the order the pipeline saw
@@ -68,7 +68,7 @@ from drivers import wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.samples import BusHealth
 from gateway import codec
-from gateway.pipeline import Pipeline
+from gateway.engine import Session, Sink
 
 log = logging.getLogger(__name__)
 _STOP = object()
@@ -248,8 +248,9 @@ class GatewayService:
         self.health_period_s = health_period_s
         self.recorder = record
         self.publish_samples = publish_samples
-        self.pipeline = Pipeline(robot, emit=self._emit, model_robot=model_robot, layout=layout,
-                                 fd=fd, estimate=estimate, timing=timing)
+        # the session engine: drivers + estimator, log times, raw frames to the recorder
+        self.engine = Session(robot, [_GatewayOut(self)], model_robot=model_robot, layout=layout, fd=fd,
+                              estimate=estimate, timing=timing)
         self.max_backlog = max_backlog
         self.resume_backlog = int(max_backlog * RESUME_FRACTION)
         self.retry_s = float(retry_s)
@@ -510,7 +511,7 @@ class GatewayService:
 
     def _work(self) -> None:
         """Threads mode: frames from the notifiers' queue."""
-        get, empty, feed = self._queue.get, self._queue.empty, self.pipeline.feed
+        get, empty, feed = self._queue.get, self._queue.empty, self.engine.feed
         while True:
             item = get()
             if item is _STOP:
@@ -529,9 +530,6 @@ class GatewayService:
         """One frame through the recorder and the pipeline (the caller holds ``self._lock``)."""
         st, msg = item
         st.processed += 1
-        t_ns = self._frame_ns = int(msg.timestamp * 1e9)
-        if self.recorder is not None:
-            self.recorder.record_can(st.name, msg, t_ns)
         try:
             feed(st.name, msg)
         except Exception:  # noqa: BLE001 - a bug behind one frame must not stop the gateway
@@ -541,12 +539,12 @@ class GatewayService:
 
     def _final_flush(self) -> None:
         with self._lock:
-            self.pipeline.flush()
+            self.engine.close()          # the epochs still waiting, a last health snapshot
         self._publish_held()
 
     def _work_direct(self) -> None:
         """Direct mode: the worker polls the buses' sockets itself (module docstring)."""
-        feed, lock, backlog, requests = self.pipeline.feed, self._lock, self._backlog, self._queue
+        feed, lock, backlog, requests = self.engine.feed, self._lock, self._backlog, self._queue
         poller = select.poll()
         poller.register(self._wake_r, select.POLLIN)
         watched: dict[int, tuple[str, can.BusABC, BusState]] = {}     # fd -> the bus polled on it
@@ -693,11 +691,9 @@ class GatewayService:
 
     # --- publishing --------------------------------------------------------------------------
 
-    _frame_ns = 0
-
-    def _emit(self, key: str, obj) -> None:
+    def _emit(self, key: str, obj, log_ns: int) -> None:
         if self.recorder is not None:
-            self.recorder.record(key, obj, self._frame_ns)
+            self.recorder.record(key, obj, log_ns)
         if "/sensors/" not in key:
             self.publish(key, obj)
             self._efforts_out = True
@@ -734,7 +730,7 @@ class GatewayService:
         dropped because the backlog was full) and ``rx_error`` (receive calls that raised)."""
         now = time.time_ns() if now_ns is None else now_ns
         with self._lock:
-            out = self.pipeline.health(now)
+            out = self.engine.pipeline.health(now)
         for i, h in enumerate(out):
             st = self.bus_state.get(getattr(h, "bus", None)) if isinstance(h, BusHealth) else None
             if st is not None and (st.dropped or st.rx_errors):
@@ -753,4 +749,20 @@ class GatewayService:
 
         for h in self.health():
             with self._lock:
-                self._emit(keys.for_sample(self.robot, h), h)
+                self._emit(keys.for_sample(self.robot, h), h, self.engine.last_log_ns or 0)
+
+
+class _GatewayOut(Sink):
+    """The gateway's side of its session: raw frames to the recorder, everything decoded or
+    estimated to :meth:`GatewayService._emit` (recorder, then zenoh)."""
+
+    def __init__(self, gw: GatewayService):
+        self.gw = gw
+
+    def frame(self, bus: str, msg: can.Message, log_ns: int) -> None:
+        rec = self.gw.recorder
+        if rec is not None:
+            rec.record_can(bus, msg, log_ns)
+
+    def emit(self, key: str, obj, log_ns: int) -> None:
+        self.gw._emit(key, obj, log_ns)

@@ -90,9 +90,20 @@ class Collector:
 
 # --- runs ------------------------------------------------------------------------------------
 
+def _collect(col: Collector):
+    """A session sink that puts efforts into ``col``."""
+    from gateway.engine import Sink
+
+    class Collect(Sink):
+        def emit(self, key, obj, log_ns) -> None:
+            col.add(obj)
+
+    return Collect()
+
+
 def run_offline(scenario, *, model_robot=None, layout=None):
-    """Simulator -> firmware frames -> Pipeline, in lockstep in this thread. Returns (trace, Estimates, stats)."""
-    from gateway.pipeline import Pipeline
+    """Simulator -> firmware frames -> a session, in lockstep in this thread. Returns (trace, Estimates, stats)."""
+    from gateway.engine import Session
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
     from simulator.firmware import Firmware
@@ -100,27 +111,28 @@ def run_offline(scenario, *, model_robot=None, layout=None):
     sim = Simulation(scenario)
     fw = Firmware(sim.robot)
     col = Collector(sim.robot, sim.n_steps)
-    pl = Pipeline(sim.robot, emit=lambda key, obj: col.add(obj), model_robot=model_robot,
+    ses = Session(sim.robot, [_collect(col)], model_robot=model_robot, samples=False,
                   layout=layout or ThrusterLayout.from_config(scenario.cfg.thrusters))
+    feed = ses.feed
     while sim.k < sim.n_steps:
         for bus, msg in fw.frames(sim.step()):
-            pl.feed(bus, msg)
-    pl.flush()
-    return sim.trace, col.est, pl.stats
+            feed(bus, msg)
+    ses.close()
+    return sim.trace, col.est, ses.stats
 
 
 def run_frames(robot, frames, n_steps: int, *, model_robot=None, layout=None):
-    """Recorded ``(bus, can.Message)`` frames -> the same :class:`Pipeline` as :func:`run_offline`
-    (e.g. the frames of a live run again, with a deliberately wrong model). Returns (Estimates, stats)."""
-    from gateway.pipeline import Pipeline
+    """Recorded ``(bus, can.Message)`` frames -> the same session as :func:`run_offline` (e.g. the
+    frames of a live run again, with a deliberately wrong model). Returns (Estimates, stats)."""
+    from gateway.engine import Session
 
     col = Collector(robot, n_steps)
-    pl = Pipeline(robot, emit=lambda key, obj: col.add(obj), model_robot=model_robot, layout=layout)
-    feed = pl.feed
+    ses = Session(robot, [_collect(col)], model_robot=model_robot, layout=layout, samples=False)
+    feed = ses.feed
     for bus, msg in frames:
         feed(bus, msg)
-    pl.flush()
-    return col.est, pl.stats
+    ses.close()
+    return col.est, ses.stats
 
 
 def free_port() -> int:
@@ -227,7 +239,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
                 gw.drain()
                 # efforts published so far (the epochs still open are computed when the service
                 # closes, after its publishers are gone: they are not on zenoh)
-                epochs = gw.pipeline.stats["epochs"]
+                epochs = gw.engine.stats["epochs"]
             col.expected = epochs * (len(robot.arms) + 1)
             # wait for the last efforts; stop early when none has come for QUIET_S (lost on the way:
             # the gateway's publishers drop rather than block when zenoh's queues are full)
@@ -242,7 +254,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
                     last, quiet_since = col.count, now
                 time.sleep(0.01)
             sub.undeclare()
-            info.update(gw.pipeline.stats)
+            info.update(gw.engine.stats)
             info["published"] = gw.published
             info["gateway"] = {k: v for k, v in gw.stats.items() if k != "buses"}
     finally:

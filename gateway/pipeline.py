@@ -67,6 +67,7 @@ class Pipeline:
             raise PipelineError(f"the model {model.name!r} must have the arms and joints of the robot {robot.name!r}")
         self.estimator = EstimatorCore(model, layout=layout, settings=settings) if estimate else None
         self._one = np.zeros(1, dtype=FRAME_DTYPE)
+        self._one_log = np.zeros(1, dtype=np.int64)
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -80,8 +81,9 @@ class Pipeline:
         return self._unknown + self.drivers.unknown_bus
 
     # -- input ---------------------------------------------------------------------------------
-    def feed(self, bus: str, msg: can.Message) -> None:
-        """One raw frame from ``bus``. Never raises on bad frames (they are counted by reason)."""
+    def feed(self, bus: str, msg: can.Message, log_ns: int | None = None) -> None:
+        """One raw frame from ``bus``. Never raises on bad frames (they are counted by reason).
+        ``log_ns``: the log time of what it produces (default: its timestamp)."""
         i = self._bus_index.get(bus)
         if i is None:
             self._unknown += 1
@@ -105,16 +107,21 @@ class Pipeline:
         d[:] = 0
         if n:
             d[:min(n, 8)] = np.frombuffer(bytes(data[:8]), dtype=np.uint8)
-        self.feed_frames(self._one)
+        if log_ns is None:
+            self.feed_frames(self._one)
+        else:
+            self._one_log[0] = log_ns
+            self.feed_frames(self._one, self._one_log)
 
-    def feed_frames(self, frames: np.ndarray) -> None:
+    def feed_frames(self, frames: np.ndarray, log_ns: np.ndarray | None = None) -> None:
         """Frames as :data:`drivers.kernel.FRAME_DTYPE` rows (``bus`` = index into
-        :attr:`buses`), in arrival order."""
+        :attr:`buses`), in arrival order; ``log_ns`` (one per frame) the log times of what they
+        produce (default: their timestamps)."""
         self.frames += len(frames)
         events = self.drivers.feed(frames)
         if not len(events):
             return
-        emit, t_frame = self.emit, frames["t_ns"]
+        emit, t_frame = self.emit, (frames["t_ns"] if log_ns is None else log_ns)
         self.samples += len(events)
         if self.emit_samples:
             frame_of = events["frame"].tolist()

@@ -569,10 +569,10 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     ``topics`` (globs over ``/can/<bus>``) and ``can_ids`` select frames; ``start_s`` and
     ``duration_s`` a window relative to the log's first message.
     """
-    from gateway import keys
-    from gateway.efforts import Alert, JointEfforts, ThrusterEffort
-    from gateway.recorder import Recorder
     from drivers.samples import BusHealth, DeviceHealth
+    from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+    from gateway.engine import Session, Sink
+    from gateway.recorder import Recorder
 
     import robot_description
     from robot_description.thrusters import ThrusterLayout
@@ -602,7 +602,6 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
 
         kinds: Counter[str] = Counter()
         by_key: Counter[str] = Counter()
-        current = [0]                 # log time of the frame being fed
         state = {"n": 0}
 
         dbcs = {name[len(DBC_ATTACHMENT_PREFIX):]: data for name, (_, data)
@@ -619,34 +618,36 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             rec.add_session_context(**context)
             queue_half = 65_536 // 2
 
-            def record(key: str, obj) -> None:
-                # Backpressure instead of loss: an offline replay may wait for the disk.
-                state["n"] += 1
-                if state["n"] % _BACKPRESSURE_EVERY == 0 and rec.stats.queue_depth > queue_half:
-                    rec.flush()
-                if not rec.record(key, obj, log_time_ns=current[0]):
-                    raise ReplayError(f"recording {key} was refused ({rec.stats})")
+            class Record(Sink):
+                def frame(self, bus: str, msg, log_ns: int) -> None:
+                    if copy_can:
+                        rec.record_can(bus, msg, log_time_ns=log_ns)
 
-            def emit(key: str, obj) -> None:
-                by_key[key] += 1
-                if isinstance(obj, (JointEfforts, ThrusterEffort)):
-                    kinds["efforts"] += 1
-                    kinds["good_efforts"] += bool(obj.good)
-                elif isinstance(obj, (DeviceHealth, BusHealth)):
-                    kinds["health"] += 1
-                elif isinstance(obj, Alert):
-                    kinds["alerts"] += 1
-                else:
-                    kinds["samples"] += 1
-                record(key, obj)
+                def emit(self, key: str, obj, log_ns: int) -> None:
+                    by_key[key] += 1
+                    if isinstance(obj, (JointEfforts, ThrusterEffort)):
+                        kinds["efforts"] += 1
+                        kinds["good_efforts"] += bool(obj.good)
+                    elif isinstance(obj, (DeviceHealth, BusHealth)):
+                        kinds["health"] += 1
+                    elif isinstance(obj, Alert):
+                        kinds["alerts"] += 1
+                    else:
+                        kinds["samples"] += 1
+                    # Backpressure instead of loss: an offline replay may wait for the disk.
+                    state["n"] += 1
+                    if state["n"] % _BACKPRESSURE_EVERY == 0 and rec.stats.queue_depth > queue_half:
+                        rec.flush()
+                    if not rec.record(key, obj, log_time_ns=log_ns):
+                        raise ReplayError(f"recording {key} was refused ({rec.stats})")
 
             # the thruster layout the session flew (a custom [[thrusters.custom]] one too): the
             # filter's prior, without which its wrenches differ from the live run's
             layout = (ThrusterLayout.from_scenario_text(scenario[1].decode("utf-8", "replace"),
                                                         f"{path}: {SCENARIO_ATTACHMENT}") if scenario else None)
-            kwargs = {"model_robot": model_robot, "fd": use_fd, "emit": emit, "layout": layout}
-            pipe = Pipeline(rob, **kwargs)
-            known = set(pipe.buses)
+            ses = Session(rob, [Record()], model_robot=model_robot, fd=use_fd, layout=layout,
+                          pipeline_factory=Pipeline)
+            known = set(ses.buses)
             skipped: Counter[str] = Counter()
             bar = _bar(progress, ctx, start_ns, end_ns, "replay")
             frames = 0
@@ -658,10 +659,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                 if bus not in known:
                     skipped[f"unknown_bus:{bus}"] += 1
                     continue
-                current[0] = t
-                if copy_can:
-                    rec.record_can(bus, msg, log_time_ns=t)
-                pipe.feed(bus, msg)
+                ses.feed(bus, msg, log_ns=t)
                 frames += 1
                 if first is None:
                     first = last_bar = t
@@ -671,17 +669,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     last_bar = t
             if bar is not None:
                 bar.close()
-            flush = getattr(pipe, "flush", None)       # end of input: epochs still waiting
-            if flush is not None and last is not None:
-                current[0] = last
-                flush()
-            final = pipe.health(last) if last is not None else []
-            current[0] = last or 0
-            for h in final:
-                kinds["health"] += 1
-                key = keys.for_sample(rob.name, h)
-                by_key[key] += 1
-                record(key, h)
+            final = ses.close()              # end of input: epochs still waiting, last health
             rejections, per_device = _rejections(final)
             wall = time.perf_counter() - t0
         if frames == 0:

@@ -1,7 +1,7 @@
 """``bsc gateway``: drivers and estimator of a robot: samples, efforts and health over zenoh.
 
 Efforts: ``bsc/<robot>/efforts/joints/<arm>`` and ``bsc/<robot>/efforts/thrusters``
-(gateway/efforts.py; sync policy in gateway/estimator/live.py). ``--record FILE.mcap`` also
+(gateway/efforts.py; sync policy in gateway/estimator/core.py). ``--record FILE.mcap`` also
 writes the session (raw frames in the order the estimator saw them, samples, efforts, health).
 
 One CAN bus per arm plus the spacecraft bus. ``--channel`` either names every bus
@@ -163,5 +163,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"bsc gateway: received {st['received']} frames, dropped {st['dropped']} (backlog full; peak "
               f"{st['peak_backlog']} of {st['max_backlog']}), receive errors "
               f"{sum(b['rx_errors'] for b in st['buses'].values())}; published {gw.published} messages; "
-              + ", ".join(f"{k} {v}" for k, v in gw.pipeline.stats.items()), flush=True)
+              + ", ".join(f"{k} {v}" for k, v in gw.engine.stats.items()), flush=True)
     return 0

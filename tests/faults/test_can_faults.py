@@ -332,7 +332,7 @@ class Lockstep:
                     self.trace = firmware.run_on_buses(self.sim, tx, firmware=self.fw, on_step=self.on_step)
                     self.settle()
                     self.stats = gw.stats
-                    self.pipeline_stats = gw.pipeline.stats
+                    self.pipeline_stats = gw.engine.stats
                     self.t_health = time.time_ns()
                     buses = set(self.fw.wire.buses)
 

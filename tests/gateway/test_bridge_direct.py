@@ -200,13 +200,13 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
 def test_direct_mode_overflow_is_counted_frame_by_frame(sessions, rig):  # noqa: F811
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s, max_backlog=40)
-    feed = gw.pipeline.feed
+    feed = gw.engine.feed
 
     def slow_feed(bus, msg):                      # a worker far slower than the buses
         time.sleep(0.0005)
         feed(bus, msg)
 
-    gw.pipeline.feed = slow_feed                  # bound by the worker when it starts
+    gw.engine.feed = slow_feed                  # bound by the worker when it starts
     try:
         gw.start()
         rig.steps(150)
@@ -228,7 +228,7 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
     out). A slowed pipeline makes the backlog; every frame must go in in timestamp order."""
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s)
-    feed = gw.pipeline.feed
+    feed = gw.engine.feed
     fed = []
 
     def slow_feed(bus, msg):
@@ -236,7 +236,7 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
         time.sleep(0.0001)
         feed(bus, msg)
 
-    gw.pipeline.feed = slow_feed
+    gw.engine.feed = slow_feed
     try:
         gw.start()
         sender = threading.Thread(target=rig.steps, args=(300,))
@@ -246,7 +246,7 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
         assert gw.drain(WAIT_S)
         assert gw.stats["peak_backlog"] > 100                     # it was behind
         assert len(fed) == sum(rig.sent.values()) and fed == sorted(fed)
-        est = gw.pipeline.estimator
+        est = gw.engine.pipeline.estimator
         assert est.late == 0 and est.epochs == 300 and est.good >= 295
     finally:
         gw.close()

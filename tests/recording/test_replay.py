@@ -44,10 +44,12 @@ class StandInPipeline:
     ``ThrusterEffort``. Times come only from the samples' integer ``t_ns``.
     """
 
-    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None):
+    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None, **_pipeline_options):
         self.wire = wire.WireMap.from_robot(robot)
-        self.robot = robot.name
+        self.robot = self.name = robot.name
         self.buses = list(self.wire.buses)
+        self.log_ns = 0                  # set by the session before each feed
+        self.stats: dict = {}
         self._emit = emit
         self._listeners = {}
         for name, spec in self.wire.buses.items():
@@ -57,9 +59,12 @@ class StandInPipeline:
         self._imu: ImuSample | None = None
         self._cmd: dict[str, float] = {}
 
-    def feed(self, bus, msg):
+    def feed(self, bus, msg, log_ns=None):
         for listener in self._listeners[bus]:
             listener.on_message_received(msg)
+
+    def flush(self):
+        pass
 
     def health(self, now_ns):
         out = []
