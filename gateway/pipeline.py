@@ -33,6 +33,7 @@ from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
 Emit = Callable[[str, object], None]
+RowsOut = Callable[[np.ndarray, np.ndarray], None]      # (rows, log time of each row)
 # the attribute that picks the key of a sample type (None: one key for the type)
 _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "device", JointEfforts: "arm",
              ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None}
@@ -48,12 +49,14 @@ class Pipeline:
     robot's arms and joints; ``layout`` the nominal thruster layout (the filter's prior);
     ``timing``: how frame timestamps relate to the devices' clocks
     (:class:`drivers.health.SourceTiming`); ``samples=False`` leaves decoded samples out of the
-    emits (they are still decoded, counted and estimated from)."""
+    emits (they are still decoded, counted and estimated from). ``on_samples`` / ``on_efforts``
+    take the rows themselves (the drivers' event rows, the estimator's effort rows) with each
+    row's log time, instead of objects to ``emit``: for outputs that encode rows directly."""
 
     def __init__(self, robot: Robot, *, emit: Emit, model_robot: Robot | None = None,
                  layout: ThrusterLayout | None = None, fd: bool = False, estimate: bool = True,
                  settings: CoreSettings | None = None, timing: SourceTiming = DEFAULT_TIMING,
-                 samples: bool = True):
+                 samples: bool = True, on_samples: RowsOut | None = None, on_efforts: RowsOut | None = None):
         self.robot = robot
         self.wire = wire.WireMap.from_robot(robot)
         self.name = self.wire.robot
@@ -61,6 +64,7 @@ class Pipeline:
         self._bus_index = {b: i for i, b in enumerate(self.buses)}
         self.emit = emit
         self.emit_samples = samples
+        self.on_samples, self.on_efforts = on_samples, on_efforts
         self.drivers = DriverCore(self.wire, fd=fd, timing=timing)
         model = model_robot or robot
         if [(a.name, tuple(a.joint_names)) for a in model.arms] != [(a.name, tuple(a.joint_names)) for a in robot.arms]:
@@ -121,35 +125,46 @@ class Pipeline:
         events = self.drivers.feed(frames)
         if not len(events):
             return
-        emit, t_frame = self.emit, (frames["t_ns"] if log_ns is None else log_ns)
+        t_frame = frames["t_ns"] if log_ns is None else log_ns
         self.samples += len(events)
         if self.emit_samples:
-            frame_of = events["frame"].tolist()
-            for k, obj in enumerate(self.drivers.to_samples(events)):
-                self.log_ns = int(t_frame[frame_of[k]])
-                emit(self._key(obj), obj)
+            if self.on_samples is not None:
+                self.on_samples(events, t_frame[events["frame"]])
+            else:
+                emit = self.emit
+                frame_of = events["frame"].tolist()
+                for k, obj in enumerate(self.drivers.to_samples(events)):
+                    self.log_ns = int(t_frame[frame_of[k]])
+                    emit(self.key(obj), obj)
         est = self.estimator
         if est is not None:
             rows = est.feed(events)
             if len(rows):
-                self._emit_efforts(rows, t_frame[events["frame"][rows["cause"]]].tolist())
+                self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
 
     def flush(self) -> None:
         """End of input: compute the epochs still waiting for members (log time: the last frame's)."""
         if self.estimator is not None:
             rows = self.estimator.flush()
             if len(rows):
-                self._emit_efforts(rows, [self.log_ns] * len(rows))
+                self._efforts(rows, np.full(len(rows), self.log_ns, dtype=np.int64))
 
-    def _emit_efforts(self, rows: np.ndarray, log_ns: list[int]) -> None:
+    def _efforts(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        self.efforts += len(rows) * (self.estimator.n_arms + 1)
+        if self.on_efforts is not None:
+            self.on_efforts(rows, log_ns)
+        else:
+            self.emit_efforts(rows, log_ns.tolist(), self.emit)
+
+    def emit_efforts(self, rows: np.ndarray, log_ns: list[int], emit: Emit) -> None:
+        """Effort rows as objects to ``emit``, :attr:`log_ns` set for each (one log time per row)."""
         n_per_row = self.estimator.n_arms + 1
         emit = self.emit
         for k, obj in enumerate(self.estimator.efforts(rows)):
             self.log_ns = log_ns[k // n_per_row]
-            self.efforts += 1
-            emit(self._key(obj), obj)
+            emit(self.key(obj), obj)
 
-    def _key(self, obj) -> str:
+    def key(self, obj) -> str:
         """``keys.for_sample`` (each key expression is built and checked once, then cached)."""
         cls = obj.__class__
         attr = _KEY_ATTR.get(cls, False)

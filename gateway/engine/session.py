@@ -31,7 +31,21 @@ from robot_description.thrusters import ThrusterLayout
 
 
 class Sink:
-    """What a session's output goes to. Override what you use; the base does nothing."""
+    """What a session's output goes to. Override what you use; the base does nothing.
+
+    A sink with ``rows = True`` takes decoded samples and efforts as rows
+    (:meth:`sample_rows`, :meth:`effort_rows`: an output that encodes rows directly, never
+    building an object per message); health still comes as objects to :meth:`emit`.
+    """
+
+    rows = False
+
+    def sample_rows(self, session: "Session", events: np.ndarray, log_ns: np.ndarray) -> None:
+        """The drivers' event rows (:data:`drivers.kernel.EVENT_DTYPE`) with each one's log time."""
+
+    def effort_rows(self, session: "Session", rows: np.ndarray, log_ns: np.ndarray) -> None:
+        """The estimator's effort rows (:func:`gateway.estimator.core.effort_dtype`), each
+        one epoch: one :class:`JointEfforts` per arm and a :class:`ThrusterEffort`."""
 
     def frame(self, bus: str, msg: can.Message, log_ns: int) -> None:
         """One raw frame as received (live), before it is decoded."""
@@ -59,9 +73,13 @@ class Session:
                  samples: bool = True, health_period_ns: int | None = None, log_offset_ns: int = 0,
                  pipeline_factory=Pipeline):
         self.sinks = list(sinks)
+        self._row_sinks = [s for s in self.sinks if s.rows]
+        self._object_sinks = [s for s in self.sinks if not s.rows]
+        rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows} if self._row_sinks else {}
         # pipeline_factory: a stand-in with Pipeline's interface (tests of what runs around it)
         self.pipeline = pipeline_factory(robot, emit=self._emit, model_robot=model_robot, layout=layout, fd=fd,
-                                         estimate=estimate, settings=settings, timing=timing, samples=samples)
+                                         estimate=estimate, settings=settings, timing=timing, samples=samples,
+                                         **rows)
         self.name = self.pipeline.name
         self.buses = self.pipeline.buses
         self.health_period_ns = health_period_ns
@@ -75,6 +93,26 @@ class Session:
         log_ns = self.pipeline.log_ns
         for s in self.sinks:
             s.emit(key, obj, log_ns)
+
+    def _emit_objects(self, key: str, obj) -> None:
+        log_ns = self.pipeline.log_ns
+        for s in self._object_sinks:
+            s.emit(key, obj, log_ns)
+
+    def _sample_rows(self, events: np.ndarray, log_ns: np.ndarray) -> None:
+        for s in self._row_sinks:
+            s.sample_rows(self, events, log_ns)
+        if self._object_sinks:                   # objects built once, for the sinks that want them
+            pl = self.pipeline
+            for obj, t in zip(pl.drivers.to_samples(events), log_ns.tolist()):
+                pl.log_ns = t
+                self._emit_objects(pl.key(obj), obj)
+
+    def _effort_rows(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        for s in self._row_sinks:
+            s.effort_rows(self, rows, log_ns)
+        if self._object_sinks:
+            self.pipeline.emit_efforts(rows, log_ns.tolist(), self._emit_objects)
 
     # -- input ---------------------------------------------------------------------------------
     def feed(self, bus: str, msg: can.Message, log_ns: int | None = None) -> None:
