@@ -13,8 +13,9 @@ rate ``w_s`` (3,) and the joint state ``q``, ``dq`` (n_joints,):
   minimum-norm least-squares solution of ``J ddq = w - w0`` (``torques.joint_accelerations_from_ft``);
 - ``full`` (n_joints,): ``tau = A_tau w - h(q, dq, ddq, a_s, w_s, dw_s)`` (paper eq. 11), N m.
 
-The recursion is :func:`.batch.joint_torques_batch`'s, one sample at a time in explicit loops, in
-each joint's internal frame (joint axis +z, :class:`.model.ChainLink`). Per arm:
+A recursive Newton-Euler pass over each serial chain, one sample at a time in explicit loops, in
+each joint's internal frame (joint axis +z, :class:`.model.ChainLink`); its test oracle is the
+Pinocchio form in :mod:`.torques`. Per arm:
 
 1. forward: twist and acceleration (``ddq = 0``) of each link from the base's, the measured
    wrench carried from C down the chain (its axis component is the simplified torque), each
@@ -50,7 +51,7 @@ from .model import EstimatorModel, EstimatorModelError, skew
 
 WEIGHTS = (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
 """Default least-squares weights of the F/T channels ``[f, t]``: 1/sigma, force 1/0.25 N, moment
-1/0.025 N m (the same as ``torques.LiveTorques.WEIGHTS``)."""
+1/0.025 N m (the same as ``torques.joint_accelerations_from_ft``'s default)."""
 
 MAX_ARM_JOINTS = 6
 QR_SAFETY = 1e-4          # QR's solution is lstsq's when rcond * kappa_F stays below this

@@ -7,9 +7,9 @@ Frames (docs/estimator.md, docs/method.md):
 
 - body frame: the spacecraft frame, origin at its centre of mass C;
 - sensor frame j: origin S_j, orientation R_j (sensor -> body), both fixed to the spacecraft;
-- joint frame i: Pinocchio's frame of joint i. The batch recursion uses an "internal" frame per
-  joint, the joint frame turned by a constant rotation Q_i so that the joint axis is +z; only
-  the rotation changes, the origin stays on the axis.
+- joint frame i: Pinocchio's frame of joint i. The recursion of :mod:`.chain_kernel` uses an
+  "internal" frame per joint, the joint frame turned by a constant rotation Q_i so that the joint
+  axis is +z; only the rotation changes, the origin stays on the axis.
 
 Vectors of joint quantities (``q``, ``dq``, ``ddq``, torques) hold the arm joints only, in the
 robot's v order (after the six base dofs): ``Robot.joint_names``. Per-arm sensor wrenches are an
@@ -53,7 +53,7 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, slots=True)
 class ChainLink:
-    """One joint and the link it moves, for the vectorised recursion (internal frames, axis +z).
+    """One joint and the link it moves, for :mod:`.chain_kernel`'s recursion (internal frames, axis +z).
 
     ``X_motion``/``X_force`` carry a twist/wrench from the previous link's internal frame (the
     body frame at C for the first joint) to this joint's frame at ``q = 0``; the joint rotation
@@ -173,7 +173,7 @@ class EstimatorModel:
 
 @dataclass(slots=True)
 class EstimatorData:
-    """Scratch space for the live (per-sample) forms. One per thread; never shared."""
+    """Scratch space for the per-sample reference forms (:mod:`.torques`). One per thread; never shared."""
 
     model: EstimatorModel
     pin_data: pin.Data = field(init=False)
@@ -192,14 +192,12 @@ class EstimatorData:
 
 
 # --- LAPACK without the Python wrappers ----------------------------------------------------------
-# ``np.linalg.solve`` / ``lstsq`` spend most of their time on a small system in argument checks.
-# These call the same gufuncs with the same arguments, so the results are the same bits. numpy's
-# wrappers turn the gufunc's "invalid" floating-point signal (singular matrix, SVD not converging)
-# into ``LinAlgError``; here it raises ``FloatingPointError`` and the numpy function is called
-# again, which then raises exactly as before.
+# ``np.linalg.solve`` spends most of its time on a small system in argument checks (the thruster
+# filter's update calls it per IMU sample). This calls the same gufunc with the same arguments,
+# so the result is the same bits. numpy's wrapper turns the gufunc's "invalid" floating-point
+# signal (singular matrix) into ``LinAlgError``; here it raises ``FloatingPointError`` and the
+# numpy function is called again, which then raises exactly as before.
 from numpy.linalg import _umath_linalg as _ul  # noqa: E402
-
-_EPS = float(np.finfo(np.float64).eps)
 
 
 def _errstate():
@@ -213,14 +211,3 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             return (_ul.solve1 if b.ndim == 1 else _ul.solve)(a, b, signature="dd->d")
     except FloatingPointError:
         return np.linalg.solve(a, b)
-
-
-def lstsq1(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.linalg.lstsq(a, b, rcond=None)[0]`` for float64 ``a`` (m, n) with m > 0 and ``b`` (m,)."""
-    m, n = a.shape
-    try:
-        with _errstate():
-            x = _ul.lstsq(a, b[:, None], _EPS * max(n, m), signature="ddd->ddid")[0]
-    except FloatingPointError:
-        return np.linalg.lstsq(a, b, rcond=None)[0]
-    return x[:, 0]

@@ -1,8 +1,9 @@
 """Joint torques from the base F/T sensors (docs/method.md section 2), one sample at a time.
 
-The live forms, computed with Pinocchio into an :class:`EstimatorData` (scratch, one per thread).
-:mod:`.batch` computes the same quantities with a vectorised numpy recursion; the tests hold the
-two together and both against Pinocchio's inverse dynamics of the whole robot.
+The reference forms, computed with Pinocchio into an :class:`EstimatorData` (scratch, one per
+thread): the test oracle of the compiled :mod:`.chain_kernel`, which the product runs. The tests
+hold these against Pinocchio's inverse dynamics of the whole free-flying robot, and the kernel
+against these.
 
 Inputs, for every function here (one sample):
 
@@ -142,125 +143,3 @@ def joint_accelerations_from_ft(model: EstimatorModel, data: EstimatorData, q: n
         rhs = (np.asarray(ft[arm.index], dtype=float) - w0[arm.index]) * wt
         ddq[list(arm.columns)] = np.linalg.lstsq(J * wt[:, None], rhs, rcond=None)[0]
     return ddq
-
-
-class LiveTorques:
-    """The three per-epoch results of the live estimator in one pass, the same bits as calling
-    :func:`joint_torques_simplified`, :func:`joint_accelerations_from_ft` (default weights) and
-    :func:`joint_torques` in that order, with less work:
-
-    - forward kinematics and ``A_tau`` once (the three functions each recompute them for the same
-      ``q``; ``rnea`` does not touch ``oMi``);
-    - the least-squares Jacobian column ``k`` of EVERY arm from one ``rnea`` (the unit
-      accelerations of joint ``k`` of each arm at once: an arm's sensor wrench depends only on
-      its own chain, the base acceleration being prescribed);
-    - LAPACK called without numpy's wrappers (:func:`.model.lstsq1`).
-    """
-
-    WEIGHTS = (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
-
-    def __init__(self, model: EstimatorModel, data: EstimatorData):
-        from .model import lstsq1
-
-        self.model, self.data = model, data
-        self._lstsq = lstsq1
-        pm = model.robot.model
-        self._pm, self._pd = pm, data.pin_data
-        self._wt = np.array(self.WEIGHTS)
-        self._wt_col = self._wt[:, None]
-        self._zeros = np.zeros(model.n_joints)
-        self._v0 = np.zeros(pm.nv)
-        kmax = max((len(a.columns) for a in model.arms), default=0)
-        self._unit = []                      # per k: (a with ones at joint k of each arm, [(arm, k)])
-        for k in range(kmax):
-            a = np.zeros(pm.nv)
-            arms = []
-            for arm in model.arms:
-                if k < len(arm.columns):
-                    a[6 + arm.columns[k]] = 1.0
-                    arms.append(arm)
-            self._unit.append((a, arms))
-        self._cols = [list(a.columns) for a in model.arms]
-        self._arm_n = [len(a.columns) for a in model.arms]
-        self._n_arms, self._n_joints = model.n_arms, model.n_joints
-        self._joint_arm = model.joint_arm
-        self._twists = [(col, jid, twist, arm.sensor_inv) for arm in model.arms
-                        for col, jid, twist in zip(arm.columns, arm.joints, arm.unit_twists)]
-        self._firsts = [(arm.index, arm.joints[0], arm.sensor_inv) for arm in model.arms]
-        n0 = self._arm_n[0] if self._arm_n else 0
-        self._stacked = (n0 > 0 and all(n == n0 for n in self._arm_n)
-                         and [c for cols in self._cols for c in cols] == list(range(model.n_joints)))
-        self._unit = [(a, [(arm.index, arm.joints[0], arm.sensor_inv) for arm in arms]) for a, arms in self._unit]
-
-    def _lstsq_stack(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """``[lstsq1(A[i], B[i]) for i]`` as one ``(p, n)`` array, one gufunc call."""
-        from .model import _EPS, _errstate, _ul
-
-        m, n = A.shape[1:]
-        try:
-            with _errstate():
-                return _ul.lstsq(A, B[:, :, None], _EPS * max(n, m), signature="ddd->ddid")[0][:, :, 0]
-        except FloatingPointError:
-            return np.array([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(A, B)])
-
-    def _fill_A_tau(self) -> None:
-        """:func:`_fill_A_tau` with the loops flattened."""
-        A, oMi = self.data.A_tau, self._pd.oMi
-        for col, jid, twist, sensor_inv in self._twists:
-            A[col] = (sensor_inv * oMi[jid]).act(twist).vector
-
-    def _sensor_wrenches(self) -> np.ndarray:
-        """:func:`_model_sensor_wrenches`."""
-        pd = self._pd
-        w = np.empty((self._n_arms, 6))
-        for index, j1, sensor_inv in self._firsts:
-            w[index] = sensor_inv.act(pd.oMi[j1].act(pd.f[j1])).vector
-        return w
-
-    def epoch(self, q: np.ndarray, dq: np.ndarray, ft: np.ndarray, a_s, w_s, dw_s
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(simplified, ddq, full)`` for one epoch; ``ft`` float64 ``(p, 6)``; ``a_s``, ``w_s``,
-        ``dw_s``: 3 floats each (any sequence)."""
-        data = self.data
-        pm, pd = self._pm, self._pd
-        joint_arm = self._joint_arm
-        qq, v, acc = data.q, data.v, data.a
-        # simplified: A_tau(q) w
-        qq[7:] = q
-        pin.forwardKinematics(pm, pd, qq)
-        self._fill_A_tau()
-        A_tau = data.A_tau
-        simp = (A_tau * ft[joint_arm]).sum(axis=1)
-        # joint accelerations from the F/T sensors (joint_accelerations_from_ft)
-        v[3:6] = w_s
-        v[6:] = dq
-        acc[:3] = a_s
-        acc[3:6] = dw_s
-        acc[6:] = self._zeros
-        pin.rnea(pm, pd, qq, v, acc)
-        w0 = self._sensor_wrenches()
-        oMi, f = pd.oMi, pd.f
-        wt, wt_col = self._wt, self._wt_col
-        if self._stacked:
-            # every arm has n joints, columns in arm order: the p least-squares problems in one
-            # call of the same LAPACK gufunc (it solves each matrix of a stack on its own)
-            J = np.empty((self._n_arms, 6, self._arm_n[0]))
-            for k, (a, arms) in enumerate(self._unit):
-                pin.rnea(pm, pd, qq, self._v0, a)
-                for index, j1, sensor_inv in arms:
-                    J[index, :, k] = sensor_inv.act(oMi[j1].act(f[j1])).vector
-            ddq = self._lstsq_stack(J * wt_col, (ft - w0) * wt).reshape(-1)
-        else:
-            Js = [np.empty((6, n)) for n in self._arm_n]
-            for k, (a, arms) in enumerate(self._unit):
-                pin.rnea(pm, pd, qq, self._v0, a)
-                for index, j1, sensor_inv in arms:
-                    Js[index][:, k] = sensor_inv.act(oMi[j1].act(f[j1])).vector
-            ddq = np.zeros(self._n_joints)
-            for i, cols in enumerate(self._cols):
-                ddq[cols] = self._lstsq(Js[i] * wt_col, (ft[i] - w0[i]) * wt)
-        # full: tau_model + A_tau (w - w_model)
-        acc[6:] = ddq
-        tau_m = pin.rnea(pm, pd, qq, v, acc)
-        full = tau_m[6:] + (A_tau * (ft - self._sensor_wrenches())[joint_arm]).sum(axis=1)
-        return simp, ddq, full

@@ -1,5 +1,5 @@
-"""The compiled estimator (gateway.estimator.core) against the first wave's Python estimator
-(gateway.estimator.live, on Pinocchio and numpy) on the same decoded samples: the same epochs,
+"""The compiled estimator (gateway.estimator.core) against its oracle, the first wave's Python
+estimator (reference_live.py, on Pinocchio and numpy) on the same decoded samples: the same epochs,
 times, flags and commanded values exactly; torques and wrenches within 1e-9 of their scale.
 And the point of compiling it: the same bits whatever the samples per call."""
 from __future__ import annotations
@@ -12,11 +12,12 @@ import pytest
 import robot_description
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.estimator import core
-from gateway.estimator.live import LiveEstimator
 from gateway.pipeline import Pipeline
 from robot_description.thrusters import ThrusterLayout
 from simulator import firmware, scenario
 from simulator.engine import Simulation
+
+from reference_live import LiveEstimator
 
 REL = 1e-9
 

@@ -1,4 +1,5 @@
-"""The estimator against Pinocchio's inverse dynamics of the whole free-flying robot."""
+"""The estimator's reference functions (the test oracles of the compiled kernels) against
+Pinocchio's inverse dynamics of the whole free-flying robot, and sign conventions done by hand."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,8 +10,7 @@ from hypothesis import given, settings, strategies as st
 import robot_description
 from gateway.estimator import (
     EstimatorModel, bias_torques, body_to_inertial, imu_to_body, joint_torque_matrix, joint_torques,
-    joint_torques_batch, joint_torques_simplified, joint_torques_simplified_batch, thruster_wrench,
-    thruster_wrench_batch,
+    joint_torques_simplified, thruster_wrench,
 )
 
 from estimator_truth import random_state
@@ -64,39 +64,6 @@ def test_simplified_first_joint_needs_no_model(robot):
     full = joint_torques(wrong, wrong.data(), s.qj, s.dq, s.ddq, s.ft, s.a_s, s.w_s, s.dw_s)
     _close(full[first], s.tau[6:][first])
     assert np.abs(full - s.tau[6:]).max() > 1e-3
-
-
-@pytest.mark.parametrize("chunk", [7, 4096])
-def test_batch_equals_live(robot, emodel, chunk):
-    rng = np.random.default_rng(7)
-    states = [random_state(robot, rng) for _ in range(20)]
-    stack = {k: np.array([getattr(s, k) for s in states]) for k in ("qj", "dq", "ddq", "ft", "a_s", "w_s", "dw_s")}
-    data = emodel.data()
-    live_simple = np.array([joint_torques_simplified(emodel, data, s.qj, s.ft) for s in states])
-    live_full = np.array([joint_torques(emodel, data, s.qj, s.dq, s.ddq, s.ft, s.a_s, s.w_s, s.dw_s) for s in states])
-    live_h = np.array([bias_torques(emodel, data, s.qj, s.dq, s.ddq, s.a_s, s.w_s, s.dw_s) for s in states])
-    live_thr = np.array([thruster_wrench(emodel, s.ft, s.a_s, s.w_s, s.dw_s) for s in states])
-    _close(joint_torques_simplified_batch(emodel, stack["qj"], stack["ft"], chunk=chunk), live_simple)
-    full, h = joint_torques_batch(emodel, stack["qj"], stack["dq"], stack["ddq"], stack["ft"], stack["a_s"],
-                                  stack["w_s"], stack["dw_s"], chunk=chunk, return_bias=True)
-    _close(full, live_full)
-    _close(h, live_h)
-    _close(joint_torques_batch(emodel, stack["qj"], stack["dq"], stack["ddq"], stack["ft"], stack["a_s"],
-                               stack["w_s"], stack["dw_s"], chunk=chunk), live_full)
-    _close(thruster_wrench_batch(emodel, stack["ft"], stack["a_s"], stack["w_s"], stack["dw_s"]), live_thr)
-    _close(full, np.array([s.tau[6:] for s in states]))          # and both equal the truth
-
-
-def test_batch_rejects_bad_shapes(emodel):
-    N = 3
-    with pytest.raises(ValueError, match="q must be"):
-        joint_torques_simplified_batch(emodel, np.zeros((N, emodel.n_joints + 1)), np.zeros((N, emodel.n_arms, 6)))
-    with pytest.raises(ValueError, match="ft must be"):
-        joint_torques_simplified_batch(emodel, np.zeros((N, emodel.n_joints)), np.zeros((N, emodel.n_arms, 3)))
-    z = np.zeros((N, 3))
-    with pytest.raises(ValueError, match="dq must be"):
-        joint_torques_batch(emodel, np.zeros((N, emodel.n_joints)), np.zeros((N, 1)), np.zeros((N, emodel.n_joints)),
-                            np.zeros((N, emodel.n_arms, 6)), z, z, z)
 
 
 @settings(max_examples=25, deadline=None)
