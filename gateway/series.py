@@ -10,19 +10,10 @@ session. Sessions are numbered in time order: session ``k`` starts ``k`` days af
 :data:`EPOCH_NS` (its MCAP log times), and its ``bsc.series`` metadata holds ``session_index``,
 so ``bsc analyze`` orders them without trusting file names.
 
-Two ways to make the efforts of a session (``backend``):
-
-- ``"pipeline"``: the real path. ``simulator.firmware.Firmware`` turns each simulator step into
-  CAN frames, ``gateway.pipeline.Pipeline`` decodes them and estimates; the recorder keeps raw
-  frames and everything the pipeline emits (samples, health, efforts) under their zenoh keys.
-- ``"batch"``: a fast offline stand-in (fast tests, long studies; not the product path): the
-  batch estimator (``gateway.estimator``) over the truth trace's MEASURED signals (F/T readings
-  with their bias and drift, encoder angles and rates, joint accelerations by a causal low-pass
-  differentiator; the base motion from the truth trace in place of the IMU path). It shows the
-  same fault signatures (an F/T bias moves every joint estimate of its arm and the thruster
-  wrench), without CAN. Efforts are recorded at ``batch_rate_hz``.
-
-``"auto"`` means ``pipeline``.
+A session is made by the real path: ``simulator.firmware.Firmware`` turns each simulator step
+into CAN frames, ``gateway.pipeline.Pipeline`` decodes them and estimates, and the recorder keeps
+the raw frames and everything the pipeline emits (samples, health, efforts) under their zenoh
+keys, as ``bsc gateway --record`` would.
 """
 from __future__ import annotations
 
@@ -148,21 +139,18 @@ def session_toml(spec: SeriesSpec, k: int, n: int, duration_s: float) -> str:
             f'seed = {BASE_SEED + k}\n' + spec.toml(k, onset, n))
 
 
-def pick_backend(backend: str = "auto") -> str:
-    if backend not in ("auto", "pipeline", "batch"):
-        raise ValueError(f"backend {backend!r}: use auto, pipeline or batch")
-    return "pipeline" if backend == "auto" else backend
-
-
 def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
-                 duration_s: float = DEFAULT_DURATION_S, progress: bool = True, backend: str = "auto",
-                 workers: int | None = None, overwrite: bool = False, batch_rate_hz: float = 250.0,
-                 save_truth: bool = False) -> list[Path]:
+                 duration_s: float = DEFAULT_DURATION_S, progress: bool = True,
+                 workers: int | None = None, overwrite: bool = False, save_truth: bool = False,
+                 first: int = 0) -> list[Path]:
     """Write ``sessions`` recorded sessions of series ``name`` into ``out_dir``; the file paths.
 
     Sessions run in parallel worker processes (``workers``, default: the CPU count). The
     ground truth (onset, per-session degradation) goes to ``out_dir/series.json``; with
     ``save_truth`` each session's full truth trace goes beside it (``session_XXXX.truth.npz``).
+    ``first``: write only sessions ``first`` to ``sessions - 1`` (their paths are returned). A
+    session before the onset is the same run in every series (same seed, nothing degraded yet),
+    so several series of one length can share the healthy series' first sessions.
     """
     if name not in SERIES:
         raise ValueError(f"no series {name!r} (series: {', '.join(SERIES)})")
@@ -171,22 +159,22 @@ def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
         raise ValueError("sessions must be at least 1")
     if duration_s <= 0:
         raise ValueError("duration_s must be positive")
+    if not 0 <= first < sessions:
+        raise ValueError(f"first must be a session of the series (0 to {sessions - 1}), got {first}")
     onset = spec.onset(sessions)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [session_path(out, k) for k in range(sessions)]
     if not overwrite:
-        existing = [p for p in paths if p.exists()]
+        existing = [p for p in paths[first:] if p.exists()]
         if existing:
             raise FileExistsError(f"{existing[0]} exists (overwrite=True replaces the series)")
-    backend = pick_backend(backend)
-    jobs = [(name, k, sessions, float(duration_s), str(paths[k]), backend, batch_rate_hz, save_truth)
-            for k in range(sessions)]
+    jobs = [(name, k, sessions, float(duration_s), str(paths[k]), save_truth) for k in range(first, sessions)]
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=sessions, unit="session", desc=f"series {name}", leave=False)
-    workers = max(1, min(workers or os.cpu_count() or 1, sessions))
+        bar = tqdm(total=len(jobs), unit="session", desc=f"series {name}", leave=False)
+    workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
     try:
         if workers == 1:
             for job in jobs:
@@ -209,26 +197,23 @@ def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
             bar.close()
     truth = {"series": name, "description": spec.description, "sessions": sessions, "onset_session": onset,
              "expected_kind": spec.kind, "expected_target": spec.target, "duration_s": float(duration_s),
-             "backend": backend, "files": [p.name for p in paths],
+             "files": [p.name for p in paths],
              "per_session": [spec.truth(k, onset, sessions) for k in range(sessions)]}
     (out / SERIES_FILE).write_text(json.dumps(truth, indent=1) + "\n")
-    return paths
+    return paths[first:]
 
 
 def _session_job(job) -> str:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    name, k, n, duration_s, path, backend, rate_hz, save_truth = job
+    name, k, n, duration_s, path, save_truth = job
     spec = SERIES[name]
     onset = spec.onset(n)
     text = session_toml(spec, k, n, duration_s)
     meta = {"series": name, "session_index": str(k), "sessions": str(n),
             "onset_session": "" if onset is None else str(onset),
-            "start_ns": str(EPOCH_NS + k * SESSION_SPACING_NS), "backend": backend,
+            "start_ns": str(EPOCH_NS + k * SESSION_SPACING_NS),
             "truth": json.dumps(spec.truth(k, onset, n))}
-    if backend == "pipeline":
-        _record_pipeline(text, Path(path), meta, save_truth)
-    else:
-        _record_batch(text, Path(path), meta, rate_hz, save_truth)
+    _record_session(text, Path(path), meta, save_truth)
     return path
 
 
@@ -243,7 +228,7 @@ def _load_scenario(text: str, path: Path):
         toml_path.unlink()
 
 
-def _record_pipeline(text: str, path: Path, meta: dict, save_truth: bool) -> None:
+def _record_session(text: str, path: Path, meta: dict, save_truth: bool) -> None:
     from gateway.pipeline import Pipeline
     from gateway.recorder import Recorder
     from simulator.engine import Simulation
@@ -269,75 +254,3 @@ def _record_pipeline(text: str, path: Path, meta: dict, save_truth: bool) -> Non
         pipe.flush()
     if save_truth:
         sim.trace.save(path.with_suffix(".truth.npz"))
-
-
-def _health_key(robot: str, h) -> str:
-    from gateway import keys
-    return keys.for_sample(robot, h)
-
-
-def batch_efforts(trace, robot, rate_hz: float = 250.0, warmup_s: float = 0.2):
-    """Efforts from a truth trace's measured signals with the batch estimator (the ``batch``
-    backend): ``(t_ns, [JointEfforts per arm], ThrusterEffort)`` tuples at ``rate_hz``."""
-    import numpy as np
-
-    from gateway.efforts import JointEfforts, ThrusterEffort
-    from gateway.estimator import (EstimatorModel, joint_torques_batch, joint_torques_simplified_batch,
-                                   thruster_wrench_batch)
-    from gateway.estimator.filters import lowpass_derivative
-
-    model = EstimatorModel.from_robot(robot)
-    q, dq = trace["enc_angle"], trace["enc_rate"]
-    ddq = lowpass_derivative(dq, 1000.0, 20.0)
-    ft = trace["ft_meas"]
-    v, acc = trace["v"], trace["base_acc"]
-    a_s, w_s, dw_s = acc[:, :3], v[:, 3:6], acc[:, 3:]
-    full = joint_torques_batch(model, q, dq, ddq, ft, a_s, w_s, dw_s)
-    simp = joint_torques_simplified_batch(model, q, ft)
-    thr = thruster_wrench_batch(model, ft, a_s, w_s, dw_s)
-    cmd, thr_cmd = trace["tau_cmd"], trace["thr_cmd"]
-    valves = trace["valves"]
-    every = max(1, round(1000.0 / rate_hz))
-    names = robot.joint_names
-    out = []
-    for i in range(0, trace.n, every):
-        t_ns = i * 1_000_000
-        good = i * 1e-3 >= warmup_s
-        flags = () if good else ("warmup",)
-        arms = []
-        for arm in model.arms:
-            cols = list(arm.columns)
-            arms.append(JointEfforts(
-                arm=arm.name, t_ns=t_ns, joints=tuple(names[c] for c in cols),
-                full_nm=tuple(float(x) for x in full[i, cols]), simplified_nm=tuple(float(x) for x in simp[i, cols]),
-                commanded_nm=tuple(float(x) for x in cmd[i, cols]), commanded_t_ns=t_ns,
-                rate_rad_s=tuple(float(x) for x in dq[i, cols]), good=good, flags=flags))
-        mask = int(np.dot(valves[i].astype(np.int64), 1 << np.arange(valves.shape[1], dtype=np.int64)))
-        te = ThrusterEffort(t_ns=t_ns, force_n=tuple(float(x) for x in thr[i, :3]),
-                            moment_nm=tuple(float(x) for x in thr[i, 3:]),
-                            commanded_force_n=tuple(float(x) for x in thr_cmd[i, :3]),
-                            commanded_moment_nm=tuple(float(x) for x in thr_cmd[i, 3:]),
-                            commanded_t_ns=t_ns, valves=mask, good=good, flags=flags)
-        out.append((t_ns, arms, te))
-    return out
-
-
-def _record_batch(text: str, path: Path, meta: dict, rate_hz: float, save_truth: bool) -> None:
-    from gateway import keys
-    from gateway.recorder import Recorder
-    from simulator.engine import Simulation
-
-    sc = _load_scenario(text, path)
-    sim = Simulation(sc)
-    trace = sim.run()
-    base = int(meta["start_ns"])
-    robot = sim.robot.name
-    with Recorder(path, overwrite=True, metadata={SERIES_METADATA: meta}) as rec:
-        rec.add_session_context(urdf_text=sim.robot.urdf, scenario_text=text,
-                                extra={"scenario": sc.name, "robot": robot})
-        for t_ns, arms, te in batch_efforts(trace, sim.robot, rate_hz):
-            for je in arms:
-                rec.record(keys.joint_efforts(robot, je.arm), je, base + t_ns)
-            rec.record(keys.thruster_effort(robot), te, base + t_ns)
-    if save_truth:
-        trace.save(path.with_suffix(".truth.npz"))

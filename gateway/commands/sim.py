@@ -42,10 +42,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="write a series of recorded sessions: healthy, friction-growth, thruster-loss, "
                           "ft-bias-drift")
     s_g.add_argument("--sessions", type=int, default=12, metavar="N", help="sessions in the series (default 12)")
-    s_g.add_argument("--backend", choices=("pipeline", "batch"), default="pipeline",
-                     help="pipeline: firmware -> CAN frames -> drivers + estimator, raw frames recorded "
-                          "(default); batch: the batch estimator on the truth trace's measured signals, "
-                          "efforts only (fast, no CAN)")
     s_g.add_argument("--workers", type=int, metavar="N", help="worker processes (default: CPU count)")
     s_g.add_argument("--overwrite", action="store_true", help="replace an existing series in --out")
     can_g = p.add_argument_group("CAN (the sensor firmware; without --interface nothing is sent)")
@@ -216,19 +212,19 @@ def _run_series(args: argparse.Namespace) -> int:
         raise ValueError(f"--series {args.series!r}: choose one of {', '.join(SERIES)}")
     if args.interface or _uses_can(args) or args.robot or args.seed is not None or args.scenario != "capture":
         raise ValueError("--series writes the capture task with its own seeds: it takes --sessions, --duration, "
-                         "--backend, --workers, --overwrite and --out only")
+                         "--workers, --overwrite and --out only")
     if args.duration is not None and args.duration <= 0:
         raise ValueError("--duration must be positive")
     t0 = time.perf_counter()
     try:
         paths = write_series(args.series, args.sessions, args.out,
                              duration_s=args.duration or DEFAULT_DURATION_S, progress=not args.quiet,
-                             backend=args.backend, workers=args.workers, overwrite=args.overwrite)
+                             workers=args.workers, overwrite=args.overwrite)
     except FileExistsError as exc:
         raise ValueError(f"{exc}; --overwrite replaces it") from None
     truth = json.loads((args.out / "series.json").read_text())
     onset = truth["onset_session"]
-    print(f"wrote {len(paths)} sessions of series {args.series!r} ({args.backend}) to {args.out}/ in "
+    print(f"wrote {len(paths)} sessions of series {args.series!r} to {args.out}/ in "
           f"{time.perf_counter() - t0:.0f} s; "
           + ("no degradation" if onset is None else
              f"{truth['expected_kind']} fault on {truth['expected_target']} from session {onset}")

@@ -1,9 +1,13 @@
-"""Simulated degradation series end to end: simulator -> estimator -> MCAP -> bsc analyze.
+"""Simulated degradation series end to end: simulator -> firmware -> CAN frames -> Pipeline -> MCAP
+-> bsc analyze, the path every series is made by.
 
-Uses the ``batch`` backend (truth trace's measured signals through the batch estimator) so the
-four series fit in a test run; the ``pipeline`` backend (firmware -> CAN -> Pipeline) writes the
-same files and is measured in docs/monitoring.md. Measured here: detection delay after onset,
-false alarms on the healthy series (zero), and the F/T drift reported as a sensor fault.
+Checked: no alarm on the healthy series, the friction growth found on its joint and the F/T
+drift reported as a sensor fault, both at the onset session. The sessions are as short and as
+few as that allows (5 sessions, onset 3; 6 s: in shorter ones the capture task does not move
+every joint both ways, so friction is not identifiable), and the degraded series take their
+sessions before the onset from the healthy series (the same runs: see
+``test_sessions_before_the_onset_are_the_healthy_ones``). The thruster loss, visible in 2 s
+sessions, is checked through the command line by the last test.
 """
 from __future__ import annotations
 
@@ -14,17 +18,22 @@ import pytest
 from gateway import analysis
 from gateway.series import SERIES, default_onset, session_toml, write_series
 
-N = 6
+N = 5
+DURATION_S = 6.0
 
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = {}
-    for name in SERIES:
+    healthy: list = []
+    for name in ("healthy", "friction-growth", "ft-bias-drift"):
         d = tmp_path_factory.mktemp(name)
-        write_series(name, N, d, backend="batch", progress=False, workers=2)
-        res, skipped = analysis.run([d], workers=2)
-        assert not skipped
+        first = SERIES[name].onset(N) or 0
+        paths = healthy[:first] + write_series(name, N, d, duration_s=DURATION_S, progress=False, workers=2,
+                                                first=first)
+        healthy = healthy or paths
+        res, skipped = analysis.run(paths, workers=2)
+        assert not skipped and [s.index for s in res.sessions] == list(range(N))
         out[name] = (res, json.loads((d / "series.json").read_text()))
     return out
 
@@ -39,20 +48,11 @@ def test_healthy_series_has_no_false_alarm(results):
 
 
 @pytest.mark.slow
-def test_friction_growth_detected_on_the_joint_within_two_sessions(results):
+def test_friction_growth_detected_on_the_joint_at_the_onset(results):
     res, truth = results["friction-growth"]
-    onset = truth["onset_session"]
     got = raised(res)
     assert got and all(k == "actuator" and t == truth["expected_target"] for _, k, t in got)
-    assert 0 <= got[0][0] - onset <= 2
-
-
-@pytest.mark.slow
-def test_thruster_loss_detected_as_thruster_fault(results):
-    res, truth = results["thruster-loss"]
-    got = raised(res)
-    assert got and all(k == "thruster" for _, k, _ in got)
-    assert 0 <= got[0][0] - truth["onset_session"] <= 2
+    assert got[0][0] == truth["onset_session"] == 3
 
 
 @pytest.mark.slow
@@ -61,7 +61,23 @@ def test_ft_drift_is_a_sensor_fault_not_an_actuator_fault(results):
     got = raised(res)
     assert got and all(k == "sensor" for _, k, _ in got)
     assert got[0][2] == truth["expected_target"] == "arm0"
-    assert 0 <= got[0][0] - truth["onset_session"] <= 2
+    assert got[0][0] == truth["onset_session"] == 3
+
+
+def _run_lines(toml: str) -> list[str]:
+    """What a session runs: its scenario without the comment and the name."""
+    return [ln for ln in toml.splitlines() if not ln.startswith(("#", "name ="))]
+
+
+def test_sessions_before_the_onset_are_the_healthy_ones():
+    for spec in SERIES.values():
+        onset = spec.onset(N)
+        for k in range(N if onset is None else onset):
+            assert _run_lines(session_toml(spec, k, N, DURATION_S)) == \
+                _run_lines(session_toml(SERIES["healthy"], k, N, DURATION_S))
+        if onset is not None:
+            assert _run_lines(session_toml(spec, onset, N, DURATION_S)) != \
+                _run_lines(session_toml(SERIES["healthy"], onset, N, DURATION_S))
 
 
 def test_series_table_and_session_files():
@@ -97,7 +113,7 @@ def test_bsc_sim_series_through_the_real_pipeline_then_bsc_analyze(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "from session 3" in r.stdout
     truth = json.loads((out / "series.json").read_text())
-    assert truth["backend"] == "pipeline" and truth["onset_session"] == 3
+    assert truth["onset_session"] == 3
     again = bsc("sim", "--series", "thruster-loss", "--sessions", "5", "--out", str(out), "--quiet")
     assert again.returncode == 2 and "--overwrite" in again.stderr and again.stderr.count("\n") == 1
     r = bsc("analyze", str(out), "--json", "--workers", "2", "--quiet")
