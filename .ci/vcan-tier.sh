@@ -31,6 +31,11 @@ fi
 # as root), and compiling the project's modules under TCG costs seconds in every Python process
 # the tests start. pytest's rewritten test modules come from the host collection below.
 env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -m compileall -q -j 0 -x '/\.' . >/dev/null 2>&1 || true
+# The numba kernels, compiled here for a generic x86-64 CPU into a cache the guest reads (the
+# guest inherits this environment): compiling them under TCG would take about a quarter of an
+# hour, and a cache made for this host's CPU does not load on the VM's.
+export NUMBA_CPU_NAME=generic NUMBA_CACHE_DIR="$PWD/.numba-vm"
+.venv/bin/python -m gateway.engine.warm
 export OPENBLAS_NUM_THREADS=1 PYTHONDONTWRITEBYTECODE=1
 export BSC_VM_VCANS=${BSC_VM_VCANS:-4} BSC_VM_TIMEOUT=${BSC_VM_TIMEOUT:-900}
 # -p no:cacheprovider: the guest would write .pytest_cache into the host tree as root
