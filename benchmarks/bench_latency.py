@@ -22,8 +22,8 @@ Processes, all on this host:
   only the ``emit`` one).
   ``--topology split`` measures the alternative: the gateway process runs the drivers only
   (``estimate=False``, samples published on zenoh) and an **estimator** process subscribes to the
-  samples, runs :class:`gateway.estimator.live.LiveEstimator` in its zenoh callback and publishes
-  the efforts.
+  samples, runs :class:`gateway.estimator.core.EstimatorCore` in its zenoh callback (one sample
+  per call, as the gateway feeds it) and publishes the efforts.
 - **subscriber**: a zenoh session connected to the process that publishes the efforts, subscribed
   to ``bsc/<robot>/efforts/**`` (``--subscribe all``: everything, as a recorder does), stamping each
   sample with ``time.time_ns()`` first thing in its callback.
@@ -409,11 +409,11 @@ def role_gateway(a) -> int:
 
 
 def role_estimator(a) -> int:
-    """The split topology's second process: samples from zenoh -> LiveEstimator -> efforts on zenoh."""
+    """The split topology's second process: samples from zenoh -> EstimatorCore -> efforts on zenoh."""
     import zenoh
 
     from gateway import codec, keys
-    from gateway.estimator.live import LiveEstimator
+    from gateway.estimator.core import EstimatorCore, sample_rows
     from gateway.zenoh_config import make_config
 
     if a.switch_interval:
@@ -438,7 +438,7 @@ def role_estimator(a) -> int:
             pub.put(codec.encode(effort), attachment=str(tn()).encode())
             efforts.append((key, effort.t_ns, cur[0], cur[1], t, tn()))
 
-        est = LiveEstimator(robot, out, layout=layout)
+        est = EstimatorCore(robot, layout=layout)
 
         def on_sample(s):
             t = tn()
@@ -448,7 +448,10 @@ def role_estimator(a) -> int:
                 return
             with lock:
                 cur[0], cur[1] = obj.t_ns, t
-                est.add(obj)
+                rows = est.feed(sample_rows([obj], est.joint_index, est.arm_index))
+                if len(rows):
+                    for effort in est.efforts(rows):
+                        out(effort)
 
         sub = session.declare_subscriber(keys.sensors(name), on_sample)
         time.sleep(0.3)                                   # the subscription reaches the gateway

@@ -182,25 +182,10 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print) -> dict:
 
         robot = resolve_robot(ctx)
         pipe = pipeline_cls(robot, emit=lambda k, o: None)
-        kf = getattr(getattr(pipe, "estimator", None), "kf", None)
-        imu_s = [0.0, 0]
-        if kf is not None:                          # the thruster filter's share of the pipeline
-            imu = kf.imu
-
-            def timed_imu(*a):
-                t = time.perf_counter()
-                try:
-                    return imu(*a)
-                finally:
-                    imu_s[0] += time.perf_counter() - t
-                    imu_s[1] += 1
-            kf.imu = timed_imu
         t0 = time.perf_counter()
         for bus, _, msg in iter_can_frames(log):
             pipe.feed(bus, msg)
         t_feed = time.perf_counter() - t0
-        if kf is not None:
-            out.update(kf_states=kf.ns, kf_updates=imu_s[1], t_kf=imu_s[0], t_kf_floor=_covariance_floor_s(kf.ns))
 
         report = replay_offline(log, tmp / "out", pipeline_factory=pipeline_cls)
     out.update(span=span, frames=frames, t_read=t_read, t_feed=t_feed, t_full=report.wall_s,
@@ -210,28 +195,6 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print) -> dict:
 
 
 TARGET_X = 100.0
-
-
-def _covariance_floor_s(ns: int, repeat: int = 2000) -> float:
-    """Seconds for the dense arithmetic of one Kalman update of ``ns`` states with 6 measurement
-    rows (P H^T, H P H^T, the gain, the rank-6 covariance update, the symmetrisation) in numpy /
-    OpenBLAS: the floor for any numpy implementation of the live filter (a hand-tuned compiled
-    kernel could go a few times faster; it computes the same products)."""
-    import numpy as np
-
-    rng = np.random.default_rng(0)
-    A = rng.random((ns, ns))
-    P, H, sym, I6 = A @ A.T, rng.random((6, ns)), np.empty((ns, ns)), np.eye(6)
-    best = float("inf")
-    for _ in range(3):
-        t = time.perf_counter()
-        for _ in range(repeat):
-            PHt = P @ H.T
-            K = np.linalg.solve(H @ PHt + I6, PHt.T).T
-            Q = P - K @ PHt.T
-            np.add(Q, Q.T, out=sym)
-        best = min(best, (time.perf_counter() - t) / repeat)
-    return best
 
 
 def figures(quick: bool = False) -> list[dict]:
@@ -254,14 +217,6 @@ def figures(quick: bool = False) -> list[dict]:
         rows.append(row(name, rate, "frames/s", anchor="cantools_decode",
                         ratio=ratio(rate, "cantools_decode"),
                         note=f"{m['span'] / t:.2f}x real time"))
-    if m.get("kf_updates"):
-        rows.append(row("replay ceiling: the thruster filter's IMU updates alone", m["span"] / m["t_kf"],
-                        "x real time", note=f"{m['kf_updates']} updates of {m['kf_states']} states, "
-                                            f"{m['t_kf'] / m['kf_updates'] * 1e6:.0f} us each"))
-        floor = m["t_kf_floor"] * m["kf_updates"]
-        rows.append(row("replay ceiling: their dense covariance arithmetic alone (numpy/OpenBLAS)",
-                        m["span"] / floor, "x real time",
-                        note=f"{m['t_kf_floor'] * 1e6:.0f} us per update: the floor of any numpy filter"))
     return rows
 
 
@@ -280,12 +235,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<28} {t:>8.2f} {frames / t:>10.0f} {span / t:>12.1f}")
     print(f"full replay: {m['samples']} samples, {m['efforts']} efforts, "
           f"{m['health']} health, dropped {m['dropped']}")
-    if m.get("kf_updates"):
-        n, t_kf, floor = m["kf_updates"], m["t_kf"], m["t_kf_floor"] * m["kf_updates"]
-        print(f"thruster filter: {n} IMU updates of {m['kf_states']} states took {t_kf:.2f} s in the pipeline "
-              f"({t_kf / n * 1e6:.0f} us each): a ceiling of {span / t_kf:.0f}x real time from them alone; "
-              f"their dense covariance arithmetic alone ({m['t_kf_floor'] * 1e6:.0f} us each with OpenBLAS) "
-              f"caps a byte-identical replay with numpy at {span / floor:.0f}x")
     print(f"target >= 100x real time: {'met' if m['x_full'] >= TARGET_X else 'MISSED'}"
           + ("" if m["real"] else " (stand-in, not the target figure)"))
     return 0

@@ -52,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # key -> (module, what it measures, runs by default)
 BENCHMARKS: dict[str, tuple[str, str, bool]] = {
     "drivers": ("benchmarks.bench_drivers", "CAN drivers: live and batch decode", True),
-    "estimator": ("benchmarks.bench_estimator", "estimator maths, batch and per sample", True),
+    "estimator": ("benchmarks.bench_estimator", "estimator kernels and core, per call and batched", True),
     "recorder": ("benchmarks.bench_recorder", "MCAP recorder throughput", True),
     "sim": ("benchmarks.bench_sim", "simulator real-time factor", True),
     "replay": ("benchmarks.bench_replay", "offline replay through drivers + estimator", True),
