@@ -159,7 +159,6 @@ class Pipeline:
     def emit_efforts(self, rows: np.ndarray, log_ns: list[int], emit: Emit) -> None:
         """Effort rows as objects to ``emit``, :attr:`log_ns` set for each (one log time per row)."""
         n_per_row = self.estimator.n_arms + 1
-        emit = self.emit
         for k, obj in enumerate(self.estimator.efforts(rows)):
             self.log_ns = log_ns[k // n_per_row]
             emit(self.key(obj), obj)

@@ -649,6 +649,10 @@ class EstimatorCore:
             self._arm_bits.append(np.array(sorted(bits, key=lambda b: self.flag_names[b]), dtype=np.int64))
         self._thr_bits = np.array(sorted(common, key=lambda b: self.flag_names[b]), dtype=np.int64)
         self._flag_cache: dict = {}
+        from drivers.frames import builder
+        from gateway.efforts import JointEfforts, ThrusterEffort
+
+        self._make_j, self._make_t = builder(JointEfforts), builder(ThrusterEffort)   # built once: ~0.3 ms each
 
     # -- counters ------------------------------------------------------------------------------
     @property
@@ -697,10 +701,7 @@ class EstimatorCore:
     def efforts(self, rows: np.ndarray) -> list:
         """The published objects of effort rows: per row one :class:`JointEfforts` per arm, then
         one :class:`ThrusterEffort`."""
-        from drivers.frames import builder
-        from gateway.efforts import JointEfforts, ThrusterEffort
-
-        make_j, make_t = builder(JointEfforts), builder(ThrusterEffort)
+        make_j, make_t = self._make_j, self._make_t
         out = []
         col = 0
         spans = []
