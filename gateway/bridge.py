@@ -69,6 +69,7 @@ from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.samples import BusHealth
 from gateway import codec
 from gateway.engine import Session, Sink
+from gateway.engine.sinks import RecorderSink
 
 log = logging.getLogger(__name__)
 _STOP = object()
@@ -249,8 +250,9 @@ class GatewayService:
         self.recorder = record
         self.publish_samples = publish_samples
         # the session engine: drivers + estimator, log times, raw frames to the recorder
-        self.engine = Session(robot, [_GatewayOut(self)], model_robot=model_robot, layout=layout, fd=fd,
-                              estimate=estimate, timing=timing)
+        sinks = ([RecorderSink(record)] if record is not None else []) + [_Publish(self)]
+        self.engine = Session(robot, sinks, model_robot=model_robot, layout=layout, fd=fd, estimate=estimate,
+                              timing=timing)
         self.max_backlog = max_backlog
         self.resume_backlog = int(max_backlog * RESUME_FRACTION)
         self.retry_s = float(retry_s)
@@ -691,9 +693,7 @@ class GatewayService:
 
     # --- publishing --------------------------------------------------------------------------
 
-    def _emit(self, key: str, obj, log_ns: int) -> None:
-        if self.recorder is not None:
-            self.recorder.record(key, obj, log_ns)
+    def _emit(self, key: str, obj) -> None:
         if "/sensors/" not in key:
             self.publish(key, obj)
             self._efforts_out = True
@@ -749,20 +749,14 @@ class GatewayService:
 
         for h in self.health():
             with self._lock:
-                self._emit(keys.for_sample(self.robot, h), h, self.engine.last_log_ns or 0)
+                self.engine.emit(keys.for_sample(self.robot, h), h, self.engine.last_log_ns or 0)
 
 
-class _GatewayOut(Sink):
-    """The gateway's side of its session: raw frames to the recorder, everything decoded or
-    estimated to :meth:`GatewayService._emit` (recorder, then zenoh)."""
+class _Publish(Sink):
+    """The gateway's zenoh side of its session (:meth:`GatewayService._emit`)."""
 
     def __init__(self, gw: GatewayService):
         self.gw = gw
 
-    def frame(self, bus: str, msg: can.Message, log_ns: int) -> None:
-        rec = self.gw.recorder
-        if rec is not None:
-            rec.record_can(bus, msg, log_ns)
-
     def emit(self, key: str, obj, log_ns: int) -> None:
-        self.gw._emit(key, obj, log_ns)
+        self.gw._emit(key, obj)

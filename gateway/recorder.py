@@ -624,6 +624,11 @@ class Recorder:
             error=None if self._error is None else _describe(self._error))
 
     @property
+    def queue_size(self) -> int:
+        """The bound of the FIFO, in messages."""
+        return self._queue_size
+
+    @property
     def paths(self) -> list[Path]:
         """Files this recorder has opened, oldest first."""
         return list(self._paths)

@@ -50,8 +50,6 @@ from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_
 
 REPORT_NAME = "report.json"
 OUTPUT_NAME = "replay.mcap"
-# The recorder's queue is drained at least this often by an offline replay (never refused).
-_BACKPRESSURE_EVERY = 4096
 _SLEEP_MIN_S = 0.0002          # closer than this to a frame's time: send now, not sleep
 REORDER_WINDOW_NS = 1_000_000_000   # live playback: messages are put in log-time order within this
 LATE_US = 500.0                # live playback: a message sent this much after its due time is late
@@ -572,6 +570,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from drivers.samples import BusHealth, DeviceHealth
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
+    from gateway.engine.sinks import RecorderSink
     from gateway.recorder import Recorder
 
     import robot_description
@@ -602,8 +601,6 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
 
         kinds: Counter[str] = Counter()
         by_key: Counter[str] = Counter()
-        state = {"n": 0}
-
         dbcs = {name[len(DBC_ATTACHMENT_PREFIX):]: data for name, (_, data)
                 in ctx.attachments.items() if name.startswith(DBC_ATTACHMENT_PREFIX)}
         scenario = ctx.attachments.get(SCENARIO_ATTACHMENT)
@@ -616,13 +613,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                    **({"model": str(model)} if model is not None else {})})
         with Recorder(out_path, overwrite=overwrite) as rec:
             rec.add_session_context(**context)
-            queue_half = 65_536 // 2
 
-            class Record(Sink):
-                def frame(self, bus: str, msg, log_ns: int) -> None:
-                    if copy_can:
-                        rec.record_can(bus, msg, log_time_ns=log_ns)
-
+            class Count(Sink):
                 def emit(self, key: str, obj, log_ns: int) -> None:
                     by_key[key] += 1
                     if isinstance(obj, (JointEfforts, ThrusterEffort)):
@@ -634,19 +626,13 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                         kinds["alerts"] += 1
                     else:
                         kinds["samples"] += 1
-                    # Backpressure instead of loss: an offline replay may wait for the disk.
-                    state["n"] += 1
-                    if state["n"] % _BACKPRESSURE_EVERY == 0 and rec.stats.queue_depth > queue_half:
-                        rec.flush()
-                    if not rec.record(key, obj, log_time_ns=log_ns):
-                        raise ReplayError(f"recording {key} was refused ({rec.stats})")
 
             # the thruster layout the session flew (a custom [[thrusters.custom]] one too): the
             # filter's prior, without which its wrenches differ from the live run's
             layout = (ThrusterLayout.from_scenario_text(scenario[1].decode("utf-8", "replace"),
                                                         f"{path}: {SCENARIO_ATTACHMENT}") if scenario else None)
-            ses = Session(rob, [Record()], model_robot=model_robot, fd=use_fd, layout=layout,
-                          pipeline_factory=Pipeline)
+            ses = Session(rob, [RecorderSink(rec, frames=copy_can, offline=True), Count()], model_robot=model_robot,
+                          fd=use_fd, layout=layout, pipeline_factory=Pipeline)
             known = set(ses.buses)
             skipped: Counter[str] = Counter()
             bar = _bar(progress, ctx, start_ns, end_ns, "replay")

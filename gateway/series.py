@@ -229,28 +229,24 @@ def _load_scenario(text: str, path: Path):
 
 
 def _record_session(text: str, path: Path, meta: dict, save_truth: bool) -> None:
-    from gateway.pipeline import Pipeline
+    from gateway.engine import Session
+    from gateway.engine.sinks import RecorderSink
     from gateway.recorder import Recorder
+    from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
     from simulator.firmware import Firmware
 
     sc = _load_scenario(text, path)
     sim = Simulation(sc)
-    base = int(meta["start_ns"])
-    health_every = 500                 # steps: health reports every 0.5 s of sim time, as bsc gateway
     with Recorder(path, overwrite=True, metadata={SERIES_METADATA: meta}) as rec:
         rec.add_session_context(urdf_text=sim.robot.urdf, scenario_text=text,
                                 extra={"scenario": sc.name, "robot": sim.robot.name})
-        # log time = series start + sensor time: the efforts' own t_ns, not the emit order
-        pipe = Pipeline(sim.robot, emit=lambda key, obj: rec.record(key, obj, base + getattr(obj, "t_ns", 0)))
-        fw = Firmware(sim.robot)
-        while sim.k < sim.n_steps:
-            r = sim.step()
-            for bus, msg in fw.frames(r):
-                rec.record_can(bus, msg, base + r.t_ns)
-                pipe.feed(bus, msg)
-            if sim.k % health_every == 0:
-                pipe.emit_health(sim.k * 1_000_000)     # health t_ns: the frames' clock
-        pipe.flush()
+        # log time = series start + the frames' (sensor) time; health every 0.5 s of it, as bsc gateway
+        with Session(sim.robot, [RecorderSink(rec, offline=True)], layout=ThrusterLayout.from_config(sc.cfg.thrusters),
+                     health_period_ns=500_000_000, log_offset_ns=int(meta["start_ns"])) as ses:
+            fw = Firmware(sim.robot)
+            while sim.k < sim.n_steps:
+                for bus, msg in fw.frames(sim.step()):
+                    ses.feed(bus, msg)
     if save_truth:
         sim.trace.save(path.with_suffix(".truth.npz"))

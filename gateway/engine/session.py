@@ -150,6 +150,11 @@ class Session:
             self.emit_health(t, log)
 
     # -- output --------------------------------------------------------------------------------
+    def emit(self, key: str, obj, log_ns: int) -> None:
+        """Emit an object of the caller's to every sink (e.g. a health report it completed)."""
+        for s in self.sinks:
+            s.emit(key, obj, log_ns)
+
     def emit_health(self, now_ns: int, log_ns: int | None = None) -> list:
         """Emit a health snapshot of every bus and device at ``now_ns`` (frame clock); returns it."""
         out = self.pipeline.health(now_ns)

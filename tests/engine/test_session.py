@@ -1,0 +1,112 @@
+"""The session engine: log times, the health cadence, the end of input, and the same output
+whatever the sinks want (objects or rows) and however frames are fed (one by one or as rows)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import robot_description
+from drivers.kernel import columns_from_messages
+from drivers.samples import BusHealth, DeviceHealth
+from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.engine import Session, Sink
+from gateway.engine.warm import frames as synthetic_frames
+
+
+class Objects(Sink):
+    def __init__(self):
+        self.got, self.raw = [], []
+
+    def frame(self, bus, msg, log_ns):
+        self.raw.append((bus, log_ns))
+
+    def emit(self, key, obj, log_ns):
+        self.got.append((key, obj, log_ns))
+
+
+class Rows(Sink):
+    rows = True
+
+    def __init__(self):
+        self.efforts, self.samples, self.health = [], [], []
+
+    def sample_rows(self, session, events, log_ns):
+        self.samples.append((events.copy(), log_ns.copy()))
+
+    def effort_rows(self, session, rows, log_ns):
+        self.efforts.append((rows.copy(), log_ns.copy()))
+
+    def emit(self, key, obj, log_ns):
+        self.health.append(obj)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return robot_description.load("paper_robot")
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return synthetic_frames(300)
+
+
+def _run(robot, frames, sinks, **kw):
+    with Session(robot, sinks, **kw) as ses:
+        for bus, msg in frames:
+            ses.feed(bus, msg)
+    return ses
+
+
+def test_log_times_are_frame_times_plus_the_offset(robot, frames):
+    out = Objects()
+    ses = _run(robot, frames, [out], log_offset_ns=5_000_000_000)
+    assert len(out.raw) == len(frames)
+    assert [t for _, t in out.raw] == [round(m.timestamp * 1e9) + 5_000_000_000 for _, m in frames]
+    efforts = [(obj, t) for _, obj, t in out.got if isinstance(obj, (JointEfforts, ThrusterEffort))]
+    assert len(efforts) == 3 * ses.stats["epochs"] and ses.stats["epochs"] == 300
+    # an epoch's efforts carry the time of the frame that completed it: at or after the epoch
+    assert all(0 <= t - 5_000_000_000 - obj.t_ns < 2_000_000 for obj, t in efforts[-300:])
+
+
+def test_health_every_period_of_frame_time_and_once_at_the_end(robot, frames):
+    out = Objects()
+    ses = _run(robot, frames, [out], health_period_ns=100_000_000)
+    health = [(obj, t) for _, obj, t in out.got if isinstance(obj, (BusHealth, DeviceHealth))]
+    per_snapshot = len(ses.buses) + len(ses.pipeline.drivers.device_names)
+    times = sorted({obj.t_ns for obj, _ in health})
+    assert times == [100_000_000, 200_000_000, 299_000_000]          # crossings, then the last frame
+    assert len(health) == 3 * per_snapshot
+    assert ses.close() == [] and len(out.got) == len(out.got)        # closing twice adds nothing
+
+
+def test_row_and_object_sinks_see_the_same_efforts(robot, frames):
+    objs, rows = Objects(), Rows()
+    ses = _run(robot, frames, [objs, rows])
+    got_rows = np.concatenate([r for r, _ in rows.efforts])
+    row_log = np.concatenate([t for _, t in rows.efforts])
+    assert len(got_rows) == ses.stats["epochs"] == 300
+    efforts = [(obj, t) for _, obj, t in objs.got if isinstance(obj, (JointEfforts, ThrusterEffort))]
+    assert efforts and [o for o, _ in efforts] == ses.pipeline.estimator.efforts(got_rows)
+    assert [t for _, t in efforts] == np.repeat(row_log, 3).tolist()
+    events = np.concatenate([e for e, _ in rows.samples])
+    samples = [obj for _, obj, _ in objs.got if not isinstance(obj, (JointEfforts, ThrusterEffort, BusHealth,
+                                                                       DeviceHealth))]
+    assert samples == ses.pipeline.drivers.to_samples(events)
+    assert rows.health and all(isinstance(h, (BusHealth, DeviceHealth)) for h in rows.health)
+
+
+def test_frames_as_rows_give_what_frames_one_by_one_give(robot, frames):
+    one = Objects()
+    _run(robot, frames, [one])
+    batch = Objects()
+    names = [a.name for a in robot.arms] + ["spacecraft"]
+    cols = columns_from_messages([(names.index(b), m) for b, m in frames])
+    with Session(robot, [batch]) as ses:
+        for lo in range(0, len(cols), 97):                   # any split
+            ses.feed_frames(cols[lo:lo + 97])
+    # within one call samples come first, then the efforts they completed: the same two sequences
+    def split(got):
+        eff = [(k, o) for k, o, _ in got if isinstance(o, (JointEfforts, ThrusterEffort))]
+        return eff, [(k, o) for k, o, _ in got if not isinstance(o, (JointEfforts, ThrusterEffort))]
+
+    assert split(batch.got) == split(one.got) and len(split(one.got)[0]) == 900
