@@ -349,24 +349,33 @@ def role_gateway(a) -> int:
 
             for bus in buses.values():
                 bus.recv = timed_recv(bus)
-            feed0 = gw.engine.feed
+            feed0 = gw.engine.feed_messages
+            batch_wake: dict[int, int] = {}               # arrival ns -> received, this batch
 
-            def feed(bus, msg):
+            def feed(pairs):
                 t = tn()
-                arr = int(msg.timestamp * 1e9)
-                w = wakes.pop(id(msg), 0)
-                cur[0], cur[1], cur[2] = arr, w, t
-                feed0(bus, msg)
-                frames.append((arr, w, t, tn()))
+                batch_wake.clear()
+                got = []
+                for _, msg in pairs:
+                    arr = round(msg.timestamp * 1e9)
+                    w = wakes.pop(id(msg), 0)
+                    batch_wake[arr] = w
+                    got.append((arr, w))
+                cur[2] = t
+                feed0(pairs)
+                end = tn()
+                for arr, w in got:                        # the worker's time, shared by the batch
+                    frames.append((arr, w, t, t + (end - t) // len(got)))
 
             def emit(key, obj):
                 if "/efforts/" in key:
                     t = tn()
                     emit0(key, obj)
-                    efforts.append((key, obj.t_ns, cur[0], cur[1], cur[2], t, tn()))
+                    arr = pipe.log_ns                     # the completing frame's arrival stamp
+                    efforts.append((key, obj.t_ns, arr, batch_wake.get(arr, 0), cur[2], t, tn()))
                 else:
                     emit0(key, obj)
-            gw.engine.feed = feed                         # the worker binds it when it starts
+            gw.engine.feed_messages = feed                # the worker binds it when it starts
         pipe.emit = emit
         ticks: list[tuple[int, int, int]] = []
         tick0 = gw.on_tick

@@ -512,10 +512,13 @@ class GatewayService:
     # --- the worker --------------------------------------------------------------------------
 
     def _work(self) -> None:
-        """Threads mode: frames from the notifiers' queue."""
-        get, empty, feed = self._queue.get, self._queue.empty, self.engine.feed
+        """Threads mode: frames from the notifiers' queue, what is waiting taken together."""
+        q = self._queue
+        get, get_nowait, empty = q.get, q.get_nowait, q.empty
+        pending = None
         while True:
-            item = get()
+            item = pending if pending is not None else get()
+            pending = None
             if item is _STOP:
                 self._final_flush()
                 return
@@ -523,21 +526,33 @@ class GatewayService:
                 self._publish_held()
                 item.set()
                 continue
+            batch = [item]
+            while len(batch) < DIRECT_BATCH:
+                try:
+                    nxt = get_nowait()
+                except queue.Empty:
+                    break
+                if nxt is _STOP or isinstance(nxt, threading.Event):
+                    pending = nxt                  # after the frames that came before it
+                    break
+                batch.append(nxt)
             with self._lock:
-                self._process(item, feed)
+                self._process(batch)
             if self._held and empty():
                 self._publish_held()
 
-    def _process(self, item: tuple, feed) -> None:
-        """One frame through the recorder and the pipeline (the caller holds ``self._lock``)."""
-        st, msg = item
-        st.processed += 1
+    def _process(self, items: list) -> None:
+        """Frames ``(BusState, msg)`` through the session in one pass of its kernels (the caller
+        holds ``self._lock``)."""
+        for st, _ in items:
+            st.processed += 1
         try:
-            feed(st.name, msg)
-        except Exception:  # noqa: BLE001 - a bug behind one frame must not stop the gateway
+            self.engine.feed_messages([(st.name, msg) for st, msg in items])
+        except Exception:  # noqa: BLE001 - a bug behind a frame must not stop the gateway
             self.pipeline_errors += 1
             if self.pipeline_errors <= 10:
-                log.exception("pipeline error on a frame of bus %s (counted; continuing)", st.name)
+                log.exception("pipeline error on frames of %s (counted; continuing)",
+                              ", ".join(sorted({st.name for st, _ in items})))
 
     def _final_flush(self) -> None:
         with self._lock:
@@ -546,7 +561,7 @@ class GatewayService:
 
     def _work_direct(self) -> None:
         """Direct mode: the worker polls the buses' sockets itself (module docstring)."""
-        feed, lock, backlog, requests = self.engine.feed, self._lock, self._backlog, self._queue
+        lock, backlog, requests = self._lock, self._backlog, self._queue
         poller = select.poll()
         poller.register(self._wake_r, select.POLLIN)
         watched: dict[int, tuple[str, can.BusABC, BusState]] = {}     # fd -> the bus polled on it
@@ -643,12 +658,15 @@ class GatewayService:
                 if w is not None:
                     got += receive(*w, ev)
             if backlog:
-                with lock:
-                    for _ in range(DIRECT_BATCH):
-                        item = backlog.pop()
-                        if item is None:                      # a bus must be read first
-                            break
-                        self._process(item, feed)
+                batch = []
+                for _ in range(DIRECT_BATCH):
+                    item = backlog.pop()
+                    if item is None:                          # a bus must be read first
+                        break
+                    batch.append(item)
+                if batch:
+                    with lock:
+                        self._process(batch)
                 for name, more in backlog.unread.items():     # read it now, ready or not
                     if more and not backlog.queues[name] and name in fd_of:
                         receive(*watched[fd_of[name]], 0)
@@ -663,7 +681,7 @@ class GatewayService:
                     drains.clear()
         while backlog:                                        # closing: what was received goes through
             with lock:
-                self._process(backlog.pop(all_read=True), feed)
+                self._process([backlog.pop(all_read=True) for _ in range(min(len(backlog), DIRECT_BATCH))])
         self._final_flush()
         for ev_ in drains:
             ev_.set()

@@ -24,7 +24,7 @@ import numpy as np
 
 from drivers import wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
-from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE, DriverCore
+from drivers.kernel import DriverCore, columns_from_messages
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import keys
 from gateway.efforts import JointEfforts, ThrusterEffort
@@ -70,7 +70,6 @@ class Pipeline:
         if [(a.name, tuple(a.joint_names)) for a in model.arms] != [(a.name, tuple(a.joint_names)) for a in robot.arms]:
             raise PipelineError(f"the model {model.name!r} must have the arms and joints of the robot {robot.name!r}")
         self.estimator = EstimatorCore(model, layout=layout, settings=settings) if estimate else None
-        self._one = np.zeros(1, dtype=FRAME_DTYPE)
         self._one_log = np.zeros(1, dtype=np.int64)
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
@@ -92,30 +91,20 @@ class Pipeline:
         if i is None:
             self._unknown += 1
             return
-        r = self._one[0]
-        r["t_ns"] = round(msg.timestamp * 1e9)
-        aid = msg.arbitration_id
-        r["can_id"] = aid if 0 <= aid <= 0xFFFFFFFF else 0xFFFFFFFF
-        r["bus"] = i
-        r["flags"] = ((FLAG_EXTENDED if msg.is_extended_id else 0) | (FLAG_REMOTE if msg.is_remote_frame else 0)
-                      | (FLAG_ERROR if msg.is_error_frame else 0) | (FLAG_FD if msg.is_fd else 0)
-                      | (FLAG_BRS if msg.bitrate_switch else 0))
-        dlc = msg.dlc
-        r["dlc"] = dlc if 0 <= dlc <= 255 else 255
-        data = msg.data
-        n = len(data) if data is not None else 0
-        if n > 255:                          # not a CAN frame: only its length would be read
-            n = 255
-        r["length"] = n
-        d = r["data"]
-        d[:] = 0
-        if n:
-            d[:min(n, 8)] = np.frombuffer(bytes(data[:8]), dtype=np.uint8)
+        one = columns_from_messages([(i, msg)])
         if log_ns is None:
-            self.feed_frames(self._one)
+            self.feed_frames(one)
         else:
             self._one_log[0] = log_ns
-            self.feed_frames(self._one, self._one_log)
+            self.feed_frames(one, self._one_log)
+
+    def rows_of(self, pairs) -> tuple[np.ndarray, list[int]]:
+        """``(bus, can.Message)`` pairs -> (:data:`drivers.kernel.FRAME_DTYPE` rows, the index of
+        each row's pair); pairs of a bus the robot does not have are counted and left out."""
+        index = self._bus_index
+        kept = [k for k, (bus, _) in enumerate(pairs) if bus in index]
+        self._unknown += len(pairs) - len(kept)
+        return columns_from_messages([(index[pairs[k][0]], pairs[k][1]) for k in kept]), kept
 
     def feed_frames(self, frames: np.ndarray, log_ns: np.ndarray | None = None) -> None:
         """Frames as :data:`drivers.kernel.FRAME_DTYPE` rows (``bus`` = index into
@@ -190,3 +179,4 @@ class Pipeline:
         return {"frames": self.frames, "samples": self.samples, "efforts": self.efforts,
                 "epochs": est.epochs if est else 0, "good_epochs": est.good if est else 0,
                 "late_samples": est.late if est else 0, "unknown_bus": self.unknown_bus}
+

@@ -200,13 +200,13 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
 def test_direct_mode_overflow_is_counted_frame_by_frame(sessions, rig):  # noqa: F811
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s, max_backlog=40)
-    feed = gw.engine.feed
+    feed = gw.engine.feed_messages
 
-    def slow_feed(bus, msg):                      # a worker far slower than the buses
-        time.sleep(0.0005)
-        feed(bus, msg)
+    def slow_feed(pairs):                         # a worker far slower than the buses
+        time.sleep(0.0005 * len(pairs))
+        feed(pairs)
 
-    gw.engine.feed = slow_feed                  # bound by the worker when it starts
+    gw.engine.feed_messages = slow_feed
     try:
         gw.start()
         rig.steps(150)
@@ -228,15 +228,15 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
     out). A slowed pipeline makes the backlog; every frame must go in in timestamp order."""
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s)
-    feed = gw.engine.feed
+    feed = gw.engine.feed_messages
     fed = []
 
-    def slow_feed(bus, msg):
-        fed.append(msg.timestamp)
-        time.sleep(0.0001)
-        feed(bus, msg)
+    def slow_feed(pairs):
+        fed.extend(msg.timestamp for _, msg in pairs)
+        time.sleep(0.0001 * len(pairs))
+        feed(pairs)
 
-    gw.engine.feed = slow_feed
+    gw.engine.feed_messages = slow_feed
     try:
         gw.start()
         sender = threading.Thread(target=rig.steps, args=(300,))
