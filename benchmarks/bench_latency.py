@@ -350,9 +350,10 @@ def role_gateway(a) -> int:
             for bus in buses.values():
                 bus.recv = timed_recv(bus)
             feed0 = gw.engine.feed_messages
+            rows0 = gw.engine.feed_frames
             batch_wake: dict[int, int] = {}               # arrival ns -> received, this batch
 
-            def feed(pairs):
+            def feed(pairs):                              # threads receive: python-can messages
                 t = tn()
                 batch_wake.clear()
                 got = []
@@ -367,6 +368,18 @@ def role_gateway(a) -> int:
                 for arr, w in got:                        # the worker's time, shared by the batch
                     frames.append((arr, w, t, t + (end - t) // len(got)))
 
+            def feed_rows(rows, log_ns=None):             # direct receive: rows read from the sockets
+                t = tn()
+                batch_wake.clear()
+                arrs = rows["t_ns"].tolist()
+                for arr in arrs:                          # read and fed in one go: received = fed
+                    batch_wake[arr] = t
+                cur[2] = t
+                rows0(rows, log_ns)
+                end = tn()
+                for arr in arrs:
+                    frames.append((arr, t, t, t + (end - t) // len(arrs)))
+
             def emit(key, obj):
                 if "/efforts/" in key:
                     t = tn()
@@ -375,7 +388,8 @@ def role_gateway(a) -> int:
                     efforts.append((key, obj.t_ns, arr, batch_wake.get(arr, 0), cur[2], t, tn()))
                 else:
                     emit0(key, obj)
-            gw.engine.feed_messages = feed                # the worker binds it when it starts
+            gw.engine.feed_messages = feed                # the worker binds them when it starts
+            gw.engine.feed_frames = feed_rows
         pipe.emit = emit
         ticks: list[tuple[int, int, int]] = []
         tick0 = gw.on_tick

@@ -13,23 +13,26 @@ Usage::
     samples = core.to_samples(events)  # the dataclasses the Python drivers would have emitted
     buses, devices = core.health(now_ns)
 
-Input: :data:`FRAME_DTYPE`, one 24-byte record per frame (``bus`` = index into the WireMap's bus
+Input: :data:`FRAME_DTYPE`, one 80-byte record per frame (``bus`` = index into the WireMap's bus
 order, ``wire_map.buses``)::
 
-    offset  0         8           12       13         14       15          16              24
-            | t_ns i8 | can_id u4 | bus u1 | flags u1 | dlc u1 | length u1 | data u1[8]    |
+    offset  0         8           12       13         14       15          16              80
+            | t_ns i8 | can_id u4 | bus u1 | flags u1 | dlc u1 | length u1 | data u1[64]   |
 
     t_ns    round(msg.timestamp * 1e9), the drivers' _t_ns
-    flags   bit 0 extended id | 1 remote | 2 error frame | 3 FD | 4 bit-rate switch (unused)
+    flags   bit 0 extended id | 1 remote | 2 error frame | 3 FD | 4 bit-rate switch |
+            5 error state indicator (4 and 5 are kept for recording, never read here)
     dlc     msg.dlc (a value outside 0..255 is stored as 255: it behaves as the drivers' any
             dlc > 8, i.e. 8 bytes of bus time and never the DBC length)
     length  len(msg.data) (0 for None); lengths above 255 are not CAN frames (FD: 64 at most)
-    data    the first 8 payload bytes, zero padded
+    data    the payload (up to 64 bytes), zero padded
 
-Eight data bytes suffice: a payload is read only when its length equals its DBC message's
-length (device frames: ``n == lay.length``; heartbeats: the same in ``BusMonitor.not_owned``),
-and every DBC length is at most 8 (checked at import). Longer FD payloads are always rejected by
-length; their length still counts in the bus time (``wire.fd_frame_time_s(length)``).
+The kernel reads at most the first 8 data bytes: a payload is read only when its length equals
+its DBC message's length (device frames: ``n == lay.length``; heartbeats: the same in
+``BusMonitor.not_owned``), and every DBC length is at most 8 (checked at import). Longer FD
+payloads are always rejected by length; their length still counts in the bus time
+(``wire.fd_frame_time_s(length)``). A row holds the whole payload so that a frame read straight
+from a socket can be recorded exactly.
 
 Output: :data:`EVENT_DTYPE`, one 120-byte record per sample, in the order the drivers call their
 sink (a torque command frame gives one row per named joint slot, slot order)::
@@ -84,11 +87,11 @@ _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 # --- record layouts --------------------------------------------------------------------------
 
 FRAME_DTYPE = np.dtype({"names": ["t_ns", "can_id", "bus", "flags", "dlc", "length", "data"],
-                        "formats": ["<i8", "<u4", "u1", "u1", "u1", "u1", ("u1", (8,))],
-                        "offsets": [0, 8, 12, 13, 14, 15, 16], "itemsize": 24})
+                        "formats": ["<i8", "<u4", "u1", "u1", "u1", "u1", ("u1", (64,))],
+                        "offsets": [0, 8, 12, 13, 14, 15, 16], "itemsize": 80})
 """One input frame (see the module docstring)."""
 
-FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_FD, FLAG_BRS = 1, 2, 4, 8, 16
+FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_FD, FLAG_BRS, FLAG_ESI = 1, 2, 4, 8, 16, 32
 
 EVENT_DTYPE = np.dtype({"names": ["t_ns", "frame", "valves", "status", "values", "device", "kind", "counter",
                                   "saturated"],
@@ -484,7 +487,7 @@ def _feed(fr, start, ci, cf, bus, dev, out, k):
 
 # --- input ---------------------------------------------------------------------------------------
 
-_FRAME = struct.Struct("<qIBBBB8s")
+_FRAME = struct.Struct("<qIBBBB64s")
 assert _FRAME.size == FRAME_DTYPE.itemsize
 
 
@@ -507,11 +510,11 @@ def columns_from_messages(pairs: Iterable[tuple[int, can.Message]]) -> np.ndarra
             raise ValueError(f"bus index {b} outside 0..255")
         flags = ((FLAG_EXTENDED if m.is_extended_id else 0) | (FLAG_REMOTE if m.is_remote_frame else 0)
                  | (FLAG_ERROR if m.is_error_frame else 0) | (FLAG_FD if m.is_fd else 0)
-                 | (FLAG_BRS if m.bitrate_switch else 0))
+                 | (FLAG_BRS if m.bitrate_switch else 0) | (FLAG_ESI if m.error_state_indicator else 0))
         dlc = m.dlc
         cid = m.arbitration_id
         pack(buf, off, int(round(m.timestamp * 1e9)), cid if 0 <= cid <= 0xFFFFFFFF else 0xFFFFFFFF, b, flags,
-             dlc if 0 <= dlc <= 255 else 255, n, bytes(data[:8]) if n else b"")
+             dlc if 0 <= dlc <= 255 else 255, n, bytes(data[:64]) if n else b"")
         off += _FRAME.size
     return np.frombuffer(buf, FRAME_DTYPE)
 

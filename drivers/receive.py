@@ -37,7 +37,7 @@ import time
 import numpy as np
 from numba import njit
 
-from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
+from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
@@ -82,6 +82,8 @@ def parse_socketcan(raw, lens, ts, bus, little, fd_dlc, out):
             flags |= FLAG_FD
             if d[5] & 1:
                 flags |= FLAG_BRS
+            if d[5] & 2:
+                flags |= FLAG_ESI
         elif length == 8 and 8 < d[7] <= 15:
             dlc = np.int64(d[7])
         if cid & np.uint32(0x80000000):
@@ -104,7 +106,7 @@ def parse_socketcan(raw, lens, ts, bus, little, fd_dlc, out):
         if flags & FLAG_REMOTE:                     # python-can's Message drops a remote frame's bytes
             m = 0
         r["length"] = m
-        for j in range(8):
+        for j in range(64):
             r["data"][j] = d[8 + j] if j < m else 0
         k += 1
     return k
@@ -244,10 +246,12 @@ def parse_udp(raw, lens, ts, bus, keys, out, bad):
                                 flags |= FLAG_FD
                             elif f == 4:
                                 flags |= FLAG_BRS
+                            else:
+                                flags |= FLAG_ESI
                         break
                 if not good:
                     break
-        if not good or have != 7 or dn > 255:
+        if not good or have != 7 or dn > 64:
             bad[0] += 1
             continue
         r = out[k]
@@ -259,7 +263,7 @@ def parse_udp(raw, lens, ts, bus, keys, out, bad):
             dn = 0
         r["dlc"] = dlc if dlc <= 255 else 255
         r["length"] = dn
-        for j in range(8):
+        for j in range(64):
             r["data"][j] = d[ds + j] if j < dn else 0
         k += 1
     return k
@@ -279,7 +283,8 @@ class BusReader:
     def __init__(self, sock: socket.socket, bus_index: int, kind: str, capacity: int = 64):
         self.sock, self.bus_index, self.kind = sock, bus_index, kind
         self.slot = SOCKETCAN_SLOT if kind == "socketcan" else UDP_SLOT
-        self.rejected = 0
+        self.rejected = 0             # datagrams that were not frames, so far
+        self.last_read = 0            # datagrams the last read() took from the socket
         self._bad = np.zeros(1, dtype=np.int64)
         self._keys = tuple(np.frombuffer(k.encode(), dtype=np.uint8).copy() for k in _UDP_KEYS)
         self._little = struct.pack("=I", 1) == struct.pack("<I", 1)
@@ -314,6 +319,7 @@ class BusReader:
                     t = sec * 1_000_000_000 + nsec
             ts[n] = t or time.time_ns()
             n += 1
+        self.last_read = n
         if n == 0:
             return self._rows[:0]
         if self.kind == "socketcan":

@@ -19,7 +19,7 @@ them, so ``bsc replay`` reproduces the efforts byte for byte. How frames reach t
 - ``"direct"`` (the default when every bus has a pollable ``fileno()``: SocketCAN,
   ``udp_multicast``): the worker itself waits on all the buses' sockets with ``poll`` and drains
   each ready one with ``recv(0)`` into its own backlog, one FIFO per bus, which it takes in
-  timestamp order across buses (:class:`_MergedBacklog`). One Python thread per frame path: no
+  timestamp order across buses (:class:`_RowBacklog`). One Python thread per frame path: no
   hand-off between threads and no wait for the GIL (docs/latency.md).
 - ``"threads"`` (the default otherwise, e.g. python-can ``virtual``): python-can runs one notifier
   thread per bus; each only tags the frame with its bus and puts it on one FIFO queue that the
@@ -51,7 +51,6 @@ a replay are identical to the live ones.
 """
 from __future__ import annotations
 
-import collections
 import contextlib
 import dataclasses
 import logging
@@ -63,9 +62,13 @@ import time
 from typing import Callable, Mapping
 
 import can
+import numpy as np
+from numba import njit
 
 from drivers import wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
+from drivers.kernel import FRAME_DTYPE, columns_from_messages
+from drivers.receive import reader_for
 from drivers.samples import BusHealth
 from gateway import codec
 from gateway.engine import Session, Sink
@@ -123,45 +126,88 @@ def pollable(bus) -> bool:
         return False
 
 
-class _MergedBacklog:
-    """The direct mode's backlog: one FIFO per bus, taken out in timestamp order across buses.
+@njit(cache=True, nogil=True)
+def _merge_heads(t, start, end, blocked, max_n, order):
+    """The direct backlog's merge: buses' FIFO segments ``[start[b], end[b])`` of the times ``t``,
+    taken head by head, earliest first (a tie: the lower bus index), until ``max_n`` or until a
+    ``blocked`` bus (its queue empty, its socket possibly holding earlier frames) must be read.
+    Writes the indices into ``order``; returns how many, and leaves ``start`` past what was taken."""
+    n = 0
+    nb = start.shape[0]
+    while n < max_n:
+        best = -1
+        for b in range(nb):
+            if start[b] < end[b]:
+                if best < 0 or t[start[b]] < t[start[best]]:
+                    best = b
+            elif blocked[b]:
+                return n
+        if best < 0:
+            return n
+        order[n] = start[best]
+        start[best] += 1
+        n += 1
+    return n
+
+
+class _RowBacklog:
+    """The direct mode's backlog: one FIFO of frame rows per bus, taken out in timestamp order
+    across buses (:func:`_merge_heads`).
 
     Buses carry different frame rates, so taking the same number of frames from each in turn
     lets a backlog drift apart by bus (the busier bus falls behind, by tens of steps after a
-    second of backlog, and the estimator then forces its epochs out). :meth:`pop` gives the
-    earliest head, and ``None`` while a bus whose queue is empty may still hold frames in its
+    second of backlog, and the estimator then forces its epochs out). :meth:`take` gives the
+    earliest heads, and stops while a bus whose queue is empty may still hold frames in its
     socket (``unread``): those could be earlier. Within a bus the order is arrival order."""
 
-    __slots__ = ("queues", "unread", "n")
-
     def __init__(self, names):
-        self.queues: dict[str, collections.deque] = {n: collections.deque() for n in names}
-        self.unread: dict[str, bool] = dict.fromkeys(names, False)
+        self.names = list(names)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self.unread = dict.fromkeys(self.names, False)
+        self._q = [np.zeros(256, dtype=FRAME_DTYPE) for _ in self.names]
+        self._head = np.zeros(len(self.names), dtype=np.int64)
+        self._tail = np.zeros(len(self.names), dtype=np.int64)
         self.n = 0
 
     def __len__(self) -> int:
         return self.n
 
-    def append(self, name: str, item: tuple) -> None:
-        self.queues[name].append(item)
-        self.n += 1
+    def waiting(self, name: str) -> int:
+        i = self.index[name]
+        return int(self._tail[i] - self._head[i])
 
-    def pop(self, *, all_read: bool = False):
-        """The earliest waiting frame, or None (nothing waits, or a bus must be read first;
-        ``all_read``: the sockets will not be read again, take what is there)."""
-        best = None
-        t_best = 0.0
-        for name, q in self.queues.items():
-            if q:
-                t = q[0][1].timestamp
-                if best is None or t < t_best:
-                    best, t_best = q, t
-            elif self.unread[name] and not all_read:
-                return None
-        if best is None:
-            return None
-        self.n -= 1
-        return best.popleft()
+    def append(self, name: str, rows: np.ndarray) -> None:
+        i = self.index[name]
+        q, h, t = self._q[i], int(self._head[i]), int(self._tail[i])
+        k = len(rows)
+        if t + k > len(q):                     # compact, then grow if still short
+            live = t - h
+            if live + k > len(q):
+                grown = np.zeros(max(2 * len(q), live + k), dtype=FRAME_DTYPE)
+                grown[:live] = q[h:t]
+                q = self._q[i] = grown
+            else:
+                q[:live] = q[h:t]
+            h, t = 0, live
+            self._head[i] = 0
+        q[t:t + k] = rows
+        self._tail[i] = t + k
+        self.n += k
+
+    def take(self, max_n: int, *, all_read: bool = False) -> np.ndarray:
+        """Up to ``max_n`` waiting frames, earliest first (a copy)."""
+        if not self.n:
+            return np.zeros(0, dtype=FRAME_DTYPE)
+        sizes = [int(t - h) for h, t in zip(self._head, self._tail)]
+        flat = np.concatenate([q[h:t] for q, h, t in zip(self._q, self._head.tolist(), self._tail.tolist())])
+        starts = np.cumsum([0] + sizes[:-1]).astype(np.int64)
+        start, end = starts.copy(), starts + np.array(sizes, dtype=np.int64)
+        blocked = np.array([self.unread[n] and not all_read for n in self.names], dtype=np.bool_)
+        order = np.empty(min(max_n, self.n), dtype=np.int64)
+        k = _merge_heads(flat["t_ns"], start, end, blocked, len(order), order)
+        self._head += start - starts
+        self.n -= k
+        return flat[order[:k]]
 
 
 class GatewayError(Exception):
@@ -173,7 +219,8 @@ class BusState:
     the bus's notifier thread or the worker, read from anywhere)."""
 
     __slots__ = ("name", "received", "dropped", "processed", "rx_errors", "reopened", "reopen_failures",
-                 "down_since", "last_error", "backoff_s", "last_attempt", "outages", "rcvbuf")
+                 "down_since", "last_error", "backoff_s", "last_attempt", "outages", "rcvbuf",
+                 "rejected_datagrams")
 
     def __init__(self, name: str):
         self.name = name
@@ -184,6 +231,7 @@ class BusState:
         self.backoff_s = 0.0
         self.last_attempt = 0.0
         self.rcvbuf: int | None = None            # the socket's kernel receive buffer, bytes
+        self.rejected_datagrams = 0               # read directly, not frames (counted by the reader)
 
     def as_dict(self) -> dict:
         return {"received": self.received, "processed": self.processed, "dropped": self.dropped,
@@ -250,7 +298,8 @@ class GatewayService:
         self.recorder = record
         self.publish_samples = publish_samples
         # the session engine: drivers + estimator, log times, raw frames to the recorder
-        sinks = ([RecorderSink(record)] if record is not None else []) + [_Publish(self)]
+        channels = {name: getattr(buses[name], "channel", None) for name in wire_map.buses}
+        sinks = ([RecorderSink(record, channels=channels)] if record is not None else []) + [_Publish(self)]
         self.engine = Session(robot, sinks, model_robot=model_robot, layout=layout, fd=fd, estimate=estimate,
                               timing=timing)
         self.max_backlog = max_backlog
@@ -258,8 +307,9 @@ class GatewayService:
         self.retry_s = float(retry_s)
         self.reopen = reopen
         self.bus_state = {name: BusState(name) for name in self.wire.buses}
+        self._bus_list = [self.bus_state[name] for name in self.wire.buses]     # by bus index
         self._queue: queue.SimpleQueue = queue.SimpleQueue()      # threads mode: frames; direct: requests
-        self._backlog = _MergedBacklog(wire_map.buses)            # direct mode: the worker's own
+        self._backlog = _RowBacklog(wire_map.buses)               # direct mode: the worker's own
         self._wake_r = self._wake_w = -1                          # direct mode: wakes the worker's poll
         self._held: list = []                                     # decoded samples waiting to be published
         self._efforts_out = False                                 # published something else since
@@ -554,6 +604,32 @@ class GatewayService:
                 log.exception("pipeline error on frames of %s (counted; continuing)",
                               ", ".join(sorted({st.name for st, _ in items})))
 
+    def _process_rows(self, rows: np.ndarray) -> None:
+        """Frame rows (direct mode, in time order across buses) through the session in one pass
+        of its kernels (the caller holds ``self._lock``)."""
+        counts = np.bincount(rows["bus"], minlength=len(self._bus_list)).tolist()
+        for st, n in zip(self._bus_list, counts):
+            st.processed += n
+        try:
+            self.engine.feed_frames(rows)
+        except Exception:  # noqa: BLE001 - a bug behind a frame must not stop the gateway
+            self.pipeline_errors += 1
+            if self.pipeline_errors <= 10:
+                log.exception("pipeline error on %d frames (counted; continuing)", len(rows))
+
+    def _admit_rows(self, st: BusState, n: int, waiting: int) -> np.ndarray | None:
+        """:meth:`_admit` for ``n`` frames read together while ``waiting`` frames wait: the mask of
+        those kept (None: all of them)."""
+        keep = None
+        for k in range(n):
+            if self._admit(st, waiting):
+                waiting += 1
+            else:
+                if keep is None:
+                    keep = np.ones(n, dtype=np.bool_)
+                keep[k] = False
+        return keep
+
     def _final_flush(self) -> None:
         with self._lock:
             self.engine.close()          # the epochs still waiting, a last health snapshot
@@ -574,24 +650,36 @@ class GatewayService:
             unwatch(name)
             retry_at[name] = time.monotonic() + self._failed(st, exc)
 
+        readers: dict[str, object] = {}             # bus -> a BusReader (its socket read directly)
+        index = backlog.index
+
         def receive(name: str, bus: can.BusABC, st: BusState, ev: int) -> int:
-            got = 0
             backlog.unread[name] = False
             try:
-                while got < DRAIN_MAX:
-                    msg = bus.recv(0)
-                    if msg is None:
-                        break
-                    got += 1
-                    if self._admit(st, len(backlog)):
-                        backlog.append(name, (st, msg))
-                backlog.unread[name] = got == DRAIN_MAX         # its socket may hold more
+                reader = readers.get(name)
+                if reader is not None:
+                    rows = reader.read(DRAIN_MAX)
+                    got = reader.last_read
+                    st.rejected_datagrams = reader.rejected
+                else:
+                    msgs = []
+                    while len(msgs) < DRAIN_MAX:
+                        msg = bus.recv(0)
+                        if msg is None:
+                            break
+                        msgs.append((index[name], msg))
+                    got = len(msgs)
+                    rows = columns_from_messages(msgs) if msgs else None
+                if rows is not None and len(rows):
+                    keep = self._admit_rows(st, len(rows), len(backlog))
+                    backlog.append(name, rows if keep is None else rows[keep])
+                backlog.unread[name] = got >= DRAIN_MAX         # its socket may hold more
                 if not got and ev & bad:
                     raise can.CanOperationError("the bus's socket is closed" if ev & select.POLLNVAL
                                                 else "the bus's socket reports an error or hang-up")
             except Exception as exc:  # noqa: BLE001 - any recv failure: counted, backed off, retried
                 fail(name, st, exc)
-                return got
+                return 0
             if got and st.down_since is not None:
                 self._back_up(st)
             return got
@@ -607,6 +695,12 @@ class GatewayService:
                 fail(name, st, exc)
                 return
             watched[fd], fd_of[name] = (name, bus, st), fd
+            reader = reader_for(bus, index[name])
+            if reader is None:
+                readers.pop(name, None)
+            else:
+                readers[name] = reader
+                reader.rejected = st.rejected_datagrams      # a new bus object: the count goes on
             retry_at.pop(name, None)
             receive(name, bus, st, 0)      # what is waiting, and a failing bus fails again now
 
@@ -658,17 +752,12 @@ class GatewayService:
                 if w is not None:
                     got += receive(*w, ev)
             if backlog:
-                batch = []
-                for _ in range(DIRECT_BATCH):
-                    item = backlog.pop()
-                    if item is None:                          # a bus must be read first
-                        break
-                    batch.append(item)
-                if batch:
+                rows = backlog.take(DIRECT_BATCH)             # stops where a bus must be read first
+                if len(rows):
                     with lock:
-                        self._process(batch)
+                        self._process_rows(rows)
                 for name, more in backlog.unread.items():     # read it now, ready or not
-                    if more and not backlog.queues[name] and name in fd_of:
+                    if more and not backlog.waiting(name) and name in fd_of:
                         receive(*watched[fd_of[name]], 0)
                 if self._efforts_out and not backlog and self._held:    # a step's efforts are out
                     self._publish_held()
@@ -681,7 +770,7 @@ class GatewayService:
                     drains.clear()
         while backlog:                                        # closing: what was received goes through
             with lock:
-                self._process([backlog.pop(all_read=True) for _ in range(min(len(backlog), DIRECT_BATCH))])
+                self._process_rows(backlog.take(DIRECT_BATCH, all_read=True))
         self._final_flush()
         for ev_ in drains:
             ev_.set()
@@ -745,18 +834,21 @@ class GatewayService:
     def health(self, now_ns: int | None = None) -> list:
         """Snapshots of every bus and device (also resets the measured-load window). A bus's
         ``rejected`` also holds the gateway's own counts when non-zero: ``overflow`` (frames
-        dropped because the backlog was full) and ``rx_error`` (receive calls that raised)."""
+        dropped because the backlog was full), ``rx_error`` (receive calls that raised) and
+        ``malformed`` (datagrams read from the bus's socket that were not CAN frames)."""
         now = time.time_ns() if now_ns is None else now_ns
         with self._lock:
             out = self.engine.pipeline.health(now)
         for i, h in enumerate(out):
             st = self.bus_state.get(getattr(h, "bus", None)) if isinstance(h, BusHealth) else None
-            if st is not None and (st.dropped or st.rx_errors):
+            if st is not None and (st.dropped or st.rx_errors or st.rejected_datagrams):
                 rej = dict(h.rejected)
                 if st.dropped:
                     rej["overflow"] = st.dropped
                 if st.rx_errors:
                     rej["rx_error"] = st.rx_errors
+                if st.rejected_datagrams:
+                    rej["malformed"] = st.rejected_datagrams
                 out[i] = dataclasses.replace(h, rejected=tuple(sorted(rej.items())))
         return out
 

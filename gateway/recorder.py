@@ -144,6 +144,27 @@ def can_frame_json(msg) -> tuple[int, bytes]:
         return rec["t_ns"], _encode(rec).encode()
 
 
+def can_frame_json_rows(rows, channel=None) -> list[bytes]:
+    """:func:`can_frame_json` of frames given as :data:`drivers.kernel.FRAME_DTYPE` rows (read
+    straight from a socket): the same bytes python-can's message of the frame would give, with
+    ``channel`` (the receiving bus's) and ``is_rx`` true (a received frame)."""
+    b = _JSON_BOOL
+    ch = _CHANNEL_JSON.get(channel)
+    if ch is None:
+        ch = _CHANNEL_JSON[channel] = _encode(channel if channel is None or isinstance(channel, (str, int))
+                                              else str(channel))
+    out = []
+    b64 = base64.b64encode
+    t_ns, ids, flags = rows["t_ns"].tolist(), rows["can_id"].tolist(), rows["flags"].tolist()
+    dlcs, lens, data = rows["dlc"].tolist(), rows["length"].tolist(), rows["data"]
+    for k in range(len(rows)):
+        f = flags[k]
+        out.append((_CAN_JSON % (t_ns[k], ids[k], b[bool(f & 1)], b[bool(f & 2)], b[bool(f & 4)], b[bool(f & 8)],
+                                 b[bool(f & 16)], b[bool(f & 32)], "true", dlcs[k],
+                                 b64(data[k, :lens[k]].tobytes()).decode("ascii"), ch)).encode())
+    return out
+
+
 def can_frame_from_record(record: Mapping[str, Any]):
     """The python-can ``Message`` back from a ``bsc.CanFrame`` dict (inverse of the above)."""
     import can
@@ -518,6 +539,19 @@ class Recorder:
         if t < 0:
             raise ValueError(f"bus {bus}: log time {t} ns is negative")
         return self._put((info.key, t, time.time_ns(), data))
+
+    def record_can_rows(self, bus: str, rows, log_ns, channel=None) -> int:
+        """Queue frames given as rows (:func:`can_frame_json_rows`) on topic ``/can/<bus>``, each
+        at its log time in ``log_ns``; returns how many were refused (counted, as
+        :meth:`record_can`)."""
+        info = self._topics.get(CAN_TOPIC_PREFIX + bus) or self._declare_can(bus)
+        now = time.time_ns()
+        refused = 0
+        for data, t in zip(can_frame_json_rows(rows, channel), log_ns.tolist()):
+            if t < 0:
+                raise ValueError(f"bus {bus}: log time {t} ns is negative")
+            refused += not self._put((info.key, int(t), now, data))
+        return refused
 
     def can_listener(self, bus: str):
         """A python-can ``Listener`` that records every frame of ``bus`` (for a ``Notifier``)."""

@@ -416,14 +416,14 @@ def test_columns_from_messages_layout():
             (2, can.Message(arbitration_id=-5, data=b"\x01", dlc=300, is_error_frame=True, is_extended_id=False,
                             check=False))]
     cols = kernel.columns_from_messages(msgs)
-    assert cols.dtype == kernel.FRAME_DTYPE and cols.dtype.itemsize == 24
+    assert cols.dtype == kernel.FRAME_DTYPE and cols.dtype.itemsize == 80
     assert cols["t_ns"].tolist() == [1_250_000_000, 2, 0]
     assert cols["can_id"].tolist() == [0x123, 0x1ABCDEF, 0xFFFFFFFF]
     assert cols["bus"].tolist() == [1, 0, 2]
     assert cols["flags"].tolist() == [kernel.FLAG_FD | kernel.FLAG_BRS, kernel.FLAG_EXTENDED | kernel.FLAG_REMOTE,
                                       kernel.FLAG_ERROR]
     assert cols["dlc"].tolist() == [12, 3, 255] and cols["length"].tolist() == [12, 0, 1]
-    assert cols["data"][0].tolist() == list(range(8)) and cols["data"][2].tolist() == [1] + [0] * 7
+    assert cols["data"][0].tolist() == list(range(12)) + [0] * 52 and cols["data"][2].tolist() == [1] + [0] * 63
     with pytest.raises(ValueError, match="not a CAN frame"):
         kernel.columns_from_messages([(0, can.Message(data=bytes(300), check=False))])
     with pytest.raises(ValueError, match="bus index"):

@@ -51,7 +51,8 @@ def test_socketcan_frames_give_python_cans_rows():
         m = can.Message(timestamp=t / 1e9, arbitration_id=can_id & (0x1FFFFFFF if can_id & 0x80000000 else 0x7FF),
                         is_extended_id=bool(can_id & 0x80000000), is_remote_frame=bool(can_id & 0x40000000),
                         is_error_frame=bool(can_id & 0x20000000), is_fd=len(f) == 72,
-                        bitrate_switch=bool(flags & 1), dlc=dlc, data=data, check=False)
+                        bitrate_switch=bool(flags & 1), error_state_indicator=bool(flags & 2), dlc=dlc, data=data,
+                        check=False)
         want.append((2, m))
     want_rows = columns_from_messages(want)
     want_rows["t_ns"] = ts                          # exact ns here; python-can's floats round

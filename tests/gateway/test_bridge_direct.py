@@ -200,13 +200,13 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
 def test_direct_mode_overflow_is_counted_frame_by_frame(sessions, rig):  # noqa: F811
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s, max_backlog=40)
-    feed = gw.engine.feed_messages
+    feed = gw.engine.feed_frames
 
-    def slow_feed(pairs):                         # a worker far slower than the buses
-        time.sleep(0.0005 * len(pairs))
-        feed(pairs)
+    def slow_feed(rows, log_ns=None):             # a worker far slower than the buses
+        time.sleep(0.0005 * len(rows))
+        feed(rows, log_ns)
 
-    gw.engine.feed_messages = slow_feed
+    gw.engine.feed_frames = slow_feed
     try:
         gw.start()
         rig.steps(150)
@@ -228,15 +228,15 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
     out). A slowed pipeline makes the backlog; every frame must go in in timestamp order."""
     pub_s, _ = sessions
     gw = GatewayService(rig.robot, rig.rx, pub_s)
-    feed = gw.engine.feed_messages
+    feed = gw.engine.feed_frames
     fed = []
 
-    def slow_feed(pairs):
-        fed.extend(msg.timestamp for _, msg in pairs)
-        time.sleep(0.0001 * len(pairs))
-        feed(pairs)
+    def slow_feed(rows, log_ns=None):
+        fed.extend(rows["t_ns"].tolist())
+        time.sleep(0.0001 * len(rows))
+        feed(rows, log_ns)
 
-    gw.engine.feed_messages = slow_feed
+    gw.engine.feed_frames = slow_feed
     try:
         gw.start()
         sender = threading.Thread(target=rig.steps, args=(300,))
@@ -253,16 +253,28 @@ def test_direct_mode_a_backlog_is_taken_in_time_order_across_buses(sessions, rig
 
 
 def test_merged_backlog_waits_for_a_bus_that_may_hold_earlier_frames():
-    from types import SimpleNamespace as Frame
+    import numpy as np
 
-    from gateway.bridge import _MergedBacklog
+    from drivers.kernel import FRAME_DTYPE
+    from gateway.bridge import _RowBacklog
 
-    b = _MergedBacklog(["a", "b"])
-    b.append("a", ("st", Frame(timestamp=2.0)))
-    b.append("a", ("st", Frame(timestamp=3.0)))
-    b.unread["b"] = True                      # b's socket may hold frames earlier than 2.0
-    assert len(b) == 2 and b.pop() is None
-    assert b.pop(all_read=True)[1].timestamp == 2.0
+    def rows(*ts):
+        r = np.zeros(len(ts), dtype=FRAME_DTYPE)
+        r["t_ns"] = ts
+        return r
+
+    b = _RowBacklog(["a", "b"])
+    b.append("a", rows(2, 3))
+    b.unread["b"] = True                      # b's socket may hold frames earlier than 2
+    assert len(b) == 2 and len(b.take(10)) == 0
+    assert b.take(1, all_read=True)["t_ns"].tolist() == [2]
     b.unread["b"] = False
-    b.append("b", ("st", Frame(timestamp=1.0)))
-    assert [b.pop()[1].timestamp for _ in range(2)] == [1.0, 3.0] and len(b) == 0 and b.pop() is None
+    b.append("b", rows(1))
+    assert b.take(10)["t_ns"].tolist() == [1, 3] and len(b) == 0 and len(b.take(10)) == 0
+    # FIFO within a bus even when its stamps go back (a reordered frame); ties: the lower bus
+    b.append("a", rows(5, 4, 9))
+    b.append("b", rows(5, 6))
+    assert b.take(3)["t_ns"].tolist() == [5, 4, 5] and b.waiting("a") == 1 and b.waiting("b") == 1
+    for k in range(1000):                     # compaction and growth keep the order
+        b.append("b", rows(10 + k))
+    assert b.take(2000)["t_ns"].tolist() == [6, 9] + list(range(10, 1010))

@@ -330,3 +330,27 @@ def test_flushed_data_is_in_the_file_while_recording(tmp_path):
         live = mcaplog.inspect(path)              # the file is still open: no footer yet
         assert not live.complete and live.message_count == 100 and "m" in live.metadata
     assert mcaplog.inspect(path).complete
+
+
+def test_frames_given_as_rows_are_recorded_as_their_messages():
+    """A frame read straight from a socket (a row) is recorded with the bytes python-can's
+    message of it would give (classic, FD with 64 bytes, remote, error, extended, ESI)."""
+    import random
+
+    import can
+
+    from drivers.kernel import columns_from_messages
+    from gateway.recorder import can_frame_json, can_frame_json_rows
+
+    rnd = random.Random(4)
+    msgs = []
+    for k in range(500):
+        fd = rnd.random() < 0.3
+        n = rnd.choice([0, 8, 12, 64]) if fd else rnd.randint(0, 8)
+        msgs.append(can.Message(timestamp=1_700_000_000 + k * 1e-4, arbitration_id=rnd.randrange(2048),
+                                is_extended_id=rnd.random() < 0.2, is_remote_frame=not fd and rnd.random() < 0.1,
+                                is_error_frame=rnd.random() < 0.05, is_fd=fd, bitrate_switch=fd and rnd.random() < 0.5,
+                                error_state_indicator=fd and rnd.random() < 0.2, dlc=n,
+                                data=bytes(rnd.randrange(256) for _ in range(n)), channel="vcan1", check=False))
+    rows = columns_from_messages([(0, m) for m in msgs])
+    assert can_frame_json_rows(rows, "vcan1") == [can_frame_json(m)[1] for m in msgs]
