@@ -202,6 +202,19 @@ def shortest(x):
     return out, np.int64(e10 + removed)
 
 
+_DIGITS2 = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()
+_POW10 = np.array([10 ** k for k in range(20)], dtype=np.uint64)
+
+
+@_jit
+def _n_digits(u):
+    """Decimal digits of ``u`` (at least 1), by comparison (no division)."""
+    n = 1
+    while n < 20 and u >= _POW10[n]:
+        n += 1
+    return n
+
+
 @_jit
 def write_int(v, buf, o):
     """The decimal digits of int64 ``v`` into ``buf`` at ``o``; returns the new offset."""
@@ -211,25 +224,37 @@ def write_int(v, buf, o):
         u = np.uint64(-(v + 1)) + np.uint64(1)       # |INT64_MIN| has no int64
     else:
         u = np.uint64(v)
-    n = 1
-    t = u
-    while t >= 10:
-        t //= np.uint64(10)
-        n += 1
-    for k in range(n - 1, -1, -1):
-        buf[o + k] = 48 + np.uint8(u % np.uint64(10))
-        u //= np.uint64(10)
+    n = _n_digits(u)
+    _put_digits(buf, u, n, o, -1)
     return o + n
+
+
+@_jit
+def _put_fixed(buf, u, n, base):
+    """Exactly ``n`` decimal digits of ``u`` (leading zeros) into ``buf[base:base + n]``, two per
+    division (a table of "00".."99")."""
+    hundred = np.uint64(100)
+    i = base + n - 1
+    while i > base:
+        r = np.int64(u % hundred) * 2
+        u //= hundred
+        buf[i] = _DIGITS2[r + 1]
+        buf[i - 1] = _DIGITS2[r]
+        i -= 2
+    if i == base:
+        buf[i] = 48 + np.uint8(u % np.uint64(10))
 
 
 @_jit
 def _put_digits(buf, digits, n, base, dot):
     """The ``n`` decimal digits of ``digits`` into ``buf``, the first at ``base``; digits at
     index ``dot`` and after are shifted one place right (room for a decimal point; -1: none)."""
-    ten = np.uint64(10)
-    for i in range(n - 1, -1, -1):
-        buf[base + i + (1 if (dot >= 0 and i >= dot) else 0)] = 48 + np.uint8(digits % ten)
-        digits //= ten
+    if dot < 0 or dot >= n:
+        _put_fixed(buf, digits, n, base)
+        return
+    tail = n - dot
+    _put_fixed(buf, digits % _POW10[tail], tail, base + dot + 1)
+    _put_fixed(buf, digits // _POW10[tail], dot, base)
 
 
 @_jit
@@ -247,11 +272,7 @@ def write_float(x, buf, o):
         buf[o + 1] = 46
         buf[o + 2] = 48
         return o + 3
-    n = 1
-    t = digits
-    while t >= 10:
-        t //= np.uint64(10)
-        n += 1
+    n = _n_digits(digits)
     decpt = n + e                                    # the decimal point's place after the first digit
     if -4 < decpt <= 16:                             # CPython's repr: fixed notation
         if decpt <= 0:                               # 0.000ddd

@@ -1,0 +1,398 @@
+"""JSON payloads written straight from rows: the drivers' sample events and the estimator's
+effort rows become the bytes Python's ``json`` would write for their objects, without the objects.
+
+Two forms, as the project writes them today:
+
+- ``"zenoh"``: :func:`gateway.codec.encode` (``{"type":"JointEfforts","v":1,<fields>}``), what
+  ``bsc gateway`` publishes;
+- ``"mcap"``: the recorder's form (``{<fields>}``), what a log holds.
+
+Each message kind is a small program (literal bytes and typed value slots, built once from the
+dataclass's fields) run by one compiled interpreter over per-row value arrays; floats go through
+:mod:`gateway.engine.floatrepr` (CPython's ``repr``, exactly). A row whose values are not all
+finite is written by the Python encoder instead (:func:`gateway.codec.encode` refuses it; the
+recorder writes ``NaN``), so the bytes are always the objects'.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+from numba import njit
+
+from drivers import kernel
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
+from gateway.efforts import JointEfforts, ThrusterEffort
+
+from .floatrepr import write_float, write_int
+
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+# program ops: rows of (op, a, b, c)
+LIT, FLT, INT, BOOL, STR, FLTS, FLTS_IF, MIN_IF, FLAGS, GOOD, FLT_IF, INT_IF = range(12)
+FORMS = ("zenoh", "mcap")
+
+
+@_jit
+def _lit(buf, o, lit, a, b):
+    for k in range(b):
+        buf[o + k] = lit[a + k]
+    return o + b
+
+
+@_jit
+def _run(prog, lit, tab_start, tab_len, F, I, Fl, flag_bits, flag_start, flag_len, r, buf, o):
+    """One message of row ``r`` by ``prog`` into ``buf`` at ``o``; the new offset, or -1 when a
+    float is not finite."""
+    for p in range(prog.shape[0]):
+        op, a, b, c = prog[p, 0], prog[p, 1], prog[p, 2], prog[p, 3]
+        if op == LIT:
+            o = _lit(buf, o, lit, a, b)
+        elif op == FLT:
+            o = write_float(F[r, a], buf, o)
+            if o < 0:
+                return -1
+        elif op == INT:
+            o = write_int(I[r, a], buf, o)
+        elif op == BOOL:
+            if I[r, a] != 0:
+                o = _lit(buf, o, lit, c, 4)               # "true" at c (b: "false")
+            else:
+                o = _lit(buf, o, lit, b, 5)
+        elif op == STR:                                   # table b, entry I[r, a]
+            k = I[r, a]
+            o = _lit(buf, o, lit, tab_start[b + k], tab_len[b + k])
+        elif op == FLTS or op == FLTS_IF:                 # [F a..a+b) (FLTS_IF: [] unless every I c..c+b)
+            have = True
+            if op == FLTS_IF:
+                for k in range(b):
+                    if I[r, c + k] == 0:
+                        have = False
+            buf[o] = 91                                   # '['
+            o += 1
+            if have:
+                for k in range(b):
+                    if k:
+                        buf[o] = 44
+                        o += 1
+                    o = write_float(F[r, a + k], buf, o)
+                    if o < 0:
+                        return -1
+            buf[o] = 93                                   # ']'
+            o += 1
+        elif op == MIN_IF:                                # min(I a..a+b) if every I c..c+b else 0
+            have = True
+            m = I[r, a]
+            for k in range(b):
+                if I[r, c + k] == 0:
+                    have = False
+                if I[r, a + k] < m:
+                    m = I[r, a + k]
+            o = write_int(m if have else 0, buf, o)
+        elif op == FLAGS or op == GOOD:                   # flag set a (name-sorted bits), with names
+            lo, n = flag_start[a], flag_len[a]
+            if op == GOOD:
+                bad = False
+                for k in range(n):
+                    if Fl[r, flag_bits[lo + k]]:
+                        bad = True
+                o = _lit(buf, o, lit, b, 5) if bad else _lit(buf, o, lit, c, 4)
+            else:
+                buf[o] = 91
+                o += 1
+                first = True
+                for k in range(n):
+                    bit = flag_bits[lo + k]
+                    if Fl[r, bit]:
+                        if not first:
+                            buf[o] = 44
+                            o += 1
+                        first = False
+                        o = _lit(buf, o, lit, tab_start[b + bit], tab_len[b + bit])
+                buf[o] = 93
+                o += 1
+        elif op == FLT_IF:                                # F a if I b else 0.0
+            o = write_float(F[r, a] if I[r, b] != 0 else 0.0, buf, o)
+            if o < 0:
+                return -1
+        elif op == INT_IF:                                # I a if I b else 0
+            o = write_int(I[r, a] if I[r, b] != 0 else 0, buf, o)
+    return o
+
+
+@_jit
+def _encode(progs, prog_of, lit, tab_start, tab_len, F, I, Fl, flag_bits, flag_start, flag_len, per_row, buf,
+            offsets, failed):
+    """Every message of every row: row ``r``'s message ``m`` (0..per_row) by program
+    ``prog_of[r, m]`` (an index into the stacked ``progs``: rows [start, end)). Returns the bytes
+    written; a message whose floats are not all finite is left empty and flagged in ``failed``."""
+    o = 0
+    k = 0
+    for r in range(F.shape[0]):
+        for m in range(per_row):
+            offsets[k] = o
+            p = prog_of[r, m]
+            if p >= 0:
+                e = _run(progs[p], lit, tab_start, tab_len, F, I, Fl, flag_bits, flag_start, flag_len, r, buf, o)
+                if e < 0:
+                    failed[k] = 1
+                else:
+                    o = e
+            k += 1
+    offsets[k] = o
+    return o
+
+
+class _Builder:
+    """Literal bytes, string tables and flag sets shared by the programs of one encoder."""
+
+    def __init__(self):
+        self.lit = bytearray(b"truefalse")
+        self.tables: list[list[bytes]] = []
+        self.flag_sets: list[list[int]] = []
+
+    def literal(self, text: str | bytes) -> tuple[int, int]:
+        data = text.encode() if isinstance(text, str) else text
+        at = self.lit.find(data)
+        if at < 0:
+            at = len(self.lit)
+            self.lit += data
+        return at, len(data)
+
+    def table(self, strings: list[str]) -> int:
+        enc = [json.dumps(s).encode() for s in strings]
+        for s in enc:
+            if not all(32 <= c < 127 for c in s):
+                raise ValueError(f"names must be printable ASCII: {s!r}")
+        self.tables.append(enc)
+        return sum(len(t) for t in self.tables[:-1])
+
+    def flag_set(self, bits: list[int]) -> int:
+        self.flag_sets.append(list(bits))
+        return len(self.flag_sets) - 1
+
+    def arrays(self):
+        starts, lens = [], []
+        for t in self.tables:
+            for s in t:
+                a, n = self.literal(s)
+                starts.append(a)
+                lens.append(n)
+        bits = [b for fs in self.flag_sets for b in fs]
+        fstart = np.cumsum([0] + [len(fs) for fs in self.flag_sets[:-1]]).astype(np.int64) if self.flag_sets \
+            else np.zeros(0, dtype=np.int64)
+        return (np.frombuffer(bytes(self.lit), dtype=np.uint8).copy(), np.array(starts, dtype=np.int64),
+                np.array(lens, dtype=np.int64), np.array(bits, dtype=np.int64), fstart,
+                np.array([len(fs) for fs in self.flag_sets], dtype=np.int64))
+
+
+class _Program:
+    """The ops of one message kind: :meth:`field` adds ``"name":`` then a value op."""
+
+    def __init__(self, b: _Builder, type_name: str, form: str):
+        self.b, self.ops = b, []
+        self._pending = "{"
+        if form == "zenoh":
+            self._pending += f'"type":{json.dumps(type_name)},"v":1,'
+        self._first = True
+
+    def _text(self, t: str) -> None:
+        self._pending += t
+
+    def _flush(self) -> None:
+        if self._pending:
+            a, n = self.b.literal(self._pending)
+            self.ops.append((LIT, a, n, 0))
+            self._pending = ""
+
+    def field(self, name: str, op: int, a: int = 0, b: int = 0, c: int = 0) -> None:
+        self._text(("" if self._first else ",") + json.dumps(name) + ":")
+        self._first = False
+        self._flush()
+        if op in (BOOL, GOOD):
+            b, c = 4, 0                   # "false" at 4, "true" at 0 in the shared literal
+        self.ops.append((op, a, b, c))
+
+    def array(self) -> np.ndarray:
+        self._text("}")
+        self._flush()
+        return np.array(self.ops, dtype=np.int64).reshape(-1, 4)
+
+
+def _stack(progs: list[np.ndarray]) -> tuple:
+    return tuple(progs)
+
+
+# --- samples ------------------------------------------------------------------------------------
+
+_KIND_CLASS = {kernel.WRENCH: WrenchSample, kernel.JOINT: JointSample, kernel.TORQUE: TorqueCommand,
+               kernel.IMU: ImuSample, kernel.THRUSTER: ThrusterCommand, kernel.VALVE: ValveCommand}
+# event int columns of the I array
+_I_T, _I_COUNTER, _I_STATUS, _I_VALVES, _I_SAT, _I_DEVICE = range(6)
+# where each vector field starts in the event's values
+_VALUES = {"force_n": 0, "torque_nm": 3, "angle_rad": 0, "rate_rad_s": 1, "quat_wxyz": 0, "accel_m_s2": 7,
+           "moment_nm": 3}
+
+
+class SampleJson:
+    """Encodes the drivers' event rows (:data:`drivers.kernel.EVENT_DTYPE`) of one robot as the
+    JSON of the sample objects :meth:`drivers.kernel.DriverCore.to_samples` would give."""
+
+    def __init__(self, arm_names: list[str], joint_names: list[str], form: str = "zenoh"):
+        if form not in FORMS:
+            raise ValueError(f"form must be one of {FORMS}")
+        self.form = form
+        b = _Builder()
+        arm_tab = b.table(arm_names)
+        joint_tab = b.table(joint_names)
+        progs = []
+        for kind, cls in sorted(_KIND_CLASS.items()):
+            pr = _Program(b, cls.__name__, form)
+            for f in dataclasses.fields(cls):
+                n = f.name
+                if n == "device":
+                    pr.field(n, STR, _I_DEVICE, arm_tab if kind == kernel.WRENCH else joint_tab)
+                elif n == "t_ns":
+                    pr.field(n, INT, _I_T)
+                elif n == "counter":
+                    pr.field(n, INT, _I_COUNTER)
+                elif n == "status":
+                    pr.field(n, INT, _I_STATUS)
+                elif n == "valves":
+                    pr.field(n, INT, _I_VALVES)
+                elif n == "saturated":
+                    pr.field(n, BOOL, _I_SAT)
+                elif n == "rate_rad_s" and kind == kernel.IMU:
+                    pr.field(n, FLTS, 4, 3)
+                elif n in ("torque_nm",) and kind == kernel.TORQUE:
+                    pr.field(n, FLT, 0)
+                elif n in ("angle_rad", "rate_rad_s"):
+                    pr.field(n, FLT, _VALUES[n])
+                elif n in _VALUES:
+                    size = 4 if n == "quat_wxyz" else 3
+                    pr.field(n, FLTS, _VALUES[n], size)
+                else:
+                    raise ValueError(f"{cls.__name__}.{n}: no encoding")
+            progs.append(pr.array())
+        self._progs = tuple(progs)
+        self._arrays = b.arrays()
+
+    def encode(self, events: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(buf, offsets)``: message k = ``buf[offsets[k]:offsets[k + 1]]``, one per event."""
+        n = len(events)
+        F = np.ascontiguousarray(events["values"])
+        I = np.empty((n, 6), dtype=np.int64)
+        I[:, _I_T] = events["t_ns"]
+        I[:, _I_COUNTER] = events["counter"]
+        I[:, _I_STATUS] = events["status"]
+        I[:, _I_VALVES] = events["valves"]
+        I[:, _I_SAT] = events["saturated"]
+        I[:, _I_DEVICE] = events["device"]
+        prog_of = events["kind"].astype(np.int64).reshape(n, 1)
+        return self._run(F, I, np.zeros((n, 0), dtype=np.uint8), prog_of, 1, 320)
+
+    def _run(self, F, I, Fl, prog_of, per_row, max_len):
+        lit, ts, tl, bits, fstart, flen = self._arrays
+        k = prog_of.size
+        buf = np.empty(max(1, k * max_len), dtype=np.uint8)
+        off = np.empty(k + 1, dtype=np.int64)
+        failed = np.zeros(k, dtype=np.uint8)
+        n = _encode(self._progs, prog_of, lit, ts, tl, F, I, Fl, bits, fstart, flen, per_row, buf, off, failed)
+        self.failed = failed
+        return buf[:n], off
+
+    def messages(self, events: np.ndarray) -> list[bytes]:
+        buf, off = self.encode(events)
+        raw = buf.tobytes()
+        o = off.tolist()
+        return [raw[o[k]:o[k + 1]] for k in range(len(events))]
+
+
+class EffortJson(SampleJson):
+    """Encodes the estimator's effort rows (:class:`gateway.estimator.core.EstimatorCore`) as the
+    JSON of the objects :meth:`EstimatorCore.efforts` gives: per row one :class:`JointEfforts`
+    per arm, then one :class:`ThrusterEffort`."""
+
+    def __init__(self, core, form: str = "zenoh"):
+        if form not in FORMS:
+            raise ValueError(f"form must be one of {FORMS}")
+        self.form, self.core = form, core
+        p, nj = core.n_arms, core.n_joints
+        self.per_row = p + 1
+        b = _Builder()
+        flag_tab = b.table(core.flag_names)
+        arm_tab = b.table(core.arms)
+        # F columns: full | simplified | rate | commanded | thruster 6 | thruster_cmd 6
+        cf, cs, cr, cc, ct, ctc = 0, nj, 2 * nj, 3 * nj, 4 * nj, 4 * nj + 6
+        # I columns: t | commanded_have nj | commanded_t nj | thr_cmd_t | thr_cmd_valves | thr_cmd_have | arm index
+        it, ih, ict = 0, 1, 1 + nj
+        itt, itv, ith = 1 + 2 * nj, 2 + 2 * nj, 3 + 2 * nj
+        progs = []
+        col = 0
+        for a, names in enumerate(core.arm_joints):
+            n = len(names)
+            fs = b.flag_set(list(core._arm_bits[a]))
+            joints_text = "[" + ",".join(json.dumps(j) for j in names) + "]"
+            pr = _Program(b, "JointEfforts", form)
+            pr.field("arm", LIT, *b.literal(json.dumps(core.arms[a])))
+            pr.field("t_ns", INT, it)
+            pr.field("joints", LIT, *b.literal(joints_text))
+            pr.field("full_nm", FLTS, cf + col, n)
+            pr.field("simplified_nm", FLTS, cs + col, n)
+            pr.field("commanded_nm", FLTS_IF, cc + col, n, ih + col)
+            pr.field("commanded_t_ns", MIN_IF, ict + col, n, ih + col)
+            pr.field("rate_rad_s", FLTS, cr + col, n)
+            pr.field("good", GOOD, fs)
+            pr.field("flags", FLAGS, fs, flag_tab)
+            progs.append(pr.array())
+            col += n
+        fs = b.flag_set(list(core._thr_bits))
+        pr = _Program(b, "ThrusterEffort", form)
+        pr.field("t_ns", INT, it)
+        pr.field("force_n", FLTS, ct, 3)
+        pr.field("moment_nm", FLTS, ct + 3, 3)
+        for name, c0 in (("commanded_force_n", ctc), ("commanded_moment_nm", ctc + 3)):
+            pr.field(name, LIT, *b.literal("["))          # [F if have else 0.0, ...]
+            for k in range(3):
+                if k:
+                    pr.ops.append((LIT, *b.literal(","), 0))
+                pr.ops.append((FLT_IF, c0 + k, ith, 0))
+            pr.ops.append((LIT, *b.literal("]"), 0))
+        pr.field("commanded_t_ns", INT_IF, itt, ith)
+        pr.field("valves", INT_IF, itv, ith)
+        pr.field("good", GOOD, fs)
+        pr.field("flags", FLAGS, fs, flag_tab)
+        progs.append(pr.array())
+        self._progs = tuple(progs)
+        self._arrays = b.arrays()
+        self._prog_row = np.arange(self.per_row, dtype=np.int64)
+        self._nj = nj
+        self._arm_tab = arm_tab
+
+    def encode(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(buf, offsets)``: ``per_row`` messages per row, in :meth:`EstimatorCore.efforts` order."""
+        n, nj = len(rows), self._nj
+        F = np.empty((n, 4 * nj + 12))
+        F[:, :nj] = rows["full_nm"]
+        F[:, nj:2 * nj] = rows["simplified_nm"]
+        F[:, 2 * nj:3 * nj] = rows["rate_rad_s"]
+        F[:, 3 * nj:4 * nj] = rows["commanded_nm"]
+        F[:, 4 * nj:4 * nj + 6] = rows["thruster"]
+        F[:, 4 * nj + 6:] = rows["thruster_cmd"]
+        I = np.empty((n, 4 + 2 * nj), dtype=np.int64)
+        I[:, 0] = rows["t_ns"]
+        I[:, 1:1 + nj] = rows["commanded_have"]
+        I[:, 1 + nj:1 + 2 * nj] = rows["commanded_t_ns"]
+        I[:, 1 + 2 * nj] = rows["thruster_cmd_t_ns"]
+        I[:, 2 + 2 * nj] = rows["thruster_cmd_valves"]
+        I[:, 3 + 2 * nj] = rows["thruster_cmd_have"]
+        prog_of = np.broadcast_to(self._prog_row, (n, self.per_row))
+        return self._run(F, I, np.ascontiguousarray(rows["flags"]), np.ascontiguousarray(prog_of), self.per_row,
+                         400 + 64 * nj + 32 * len(self.core.flag_names))
+
+    def messages(self, rows: np.ndarray) -> list[bytes]:
+        buf, off = self.encode(rows)
+        raw = buf.tobytes()
+        o = off.tolist()
+        return [raw[o[k]:o[k + 1]] for k in range(len(rows) * self.per_row)]

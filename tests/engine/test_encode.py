@@ -1,0 +1,90 @@
+"""JSON written straight from rows is byte for byte the JSON of the objects: the zenoh payloads
+(gateway.codec.encode) and the recorder's records, for every sample kind and every effort, with
+flags, commands missing and present, several robots."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway import codec
+from gateway.engine.encode import EffortJson, SampleJson
+from gateway.recorder import _dataclass_json
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "estimator"))
+from test_core import _samples  # noqa: E402
+
+from drivers.kernel import DriverCore  # noqa: E402
+from drivers.wire import WireMap  # noqa: E402
+from gateway.estimator import core as ecore  # noqa: E402
+from simulator import firmware  # noqa: E402
+
+
+def _python(objs, form):
+    if form == "zenoh":
+        return [codec.encode(o) for o in objs]
+    return [_dataclass_json(type(o))(o).encode() for o in objs]
+
+
+@pytest.fixture(scope="module", params=["capture", "three_arm"])
+def run(request):
+    faults = firmware.Faults(drop_rate=0.02, silent=(("imu", 0.2, 0.05),), seed=3) \
+        if request.param == "capture" else None
+    robot, layout, samples = _samples(request.param, 0.5, faults)
+    c = ecore.EstimatorCore(robot, layout=layout)
+    rows = ecore.sample_rows(samples, c.joint_index, c.arm_index)
+    eff = np.concatenate([c.feed(rows).copy(), c.flush().copy()])
+    return robot, c, eff
+
+
+@pytest.mark.parametrize("form", ["zenoh", "mcap"])
+def test_efforts_as_their_objects_would_be(run, form):
+    robot, c, rows = run
+    enc = EffortJson(c, form)
+    got = enc.messages(rows)
+    objs = c.efforts(rows)
+    assert len(got) == len(objs) > 300 and not enc.failed.any()
+    assert got == _python(objs, form)
+    assert any(o.flags for o in objs) and any(not o.flags for o in objs)
+    assert any(getattr(o, "commanded_nm", None) == () for o in objs)
+
+
+@pytest.mark.parametrize("form", ["zenoh", "mcap"])
+def test_samples_as_their_objects_would_be(run, form):
+    robot, _, _ = run
+    from gateway.engine.warm import frames
+    from drivers.kernel import columns_from_messages
+
+    wm = WireMap.from_robot(robot)
+    names = list(wm.buses)
+    from simulator import scenario
+    from simulator.engine import Simulation
+
+    sim = Simulation(scenario.load("capture" if robot.name == "paper_robot" else "three_arm", {"duration_s": 0.2}))
+    fw = firmware.Firmware(sim.robot)
+    pairs = []
+    while sim.k < sim.n_steps:
+        pairs += [(names.index(b), m) for b, m in fw.frames(sim.step())]
+    core = DriverCore(wm)
+    events = core.feed(columns_from_messages(pairs)).copy()
+    enc = SampleJson([a.name for a in robot.arms], robot.joint_names, form)
+    got = enc.messages(events)
+    objs = core.to_samples(events)
+    assert len(got) == len(objs) > 1000
+    assert {type(o).__name__ for o in objs} == {"WrenchSample", "JointSample", "TorqueCommand", "ImuSample",
+                                               "ThrusterCommand", "ValveCommand"}
+    assert got == _python(objs, form)
+    assert frames  # (the warm-up's frames exist too; kept importable)
+
+
+def test_a_non_finite_value_is_left_to_python(run):
+    robot, c, rows = run
+    bad = rows[:3].copy()
+    bad["full_nm"][1, 0] = np.nan
+    enc = EffortJson(c, "mcap")
+    buf, off = enc.encode(bad)
+    per = enc.per_row
+    assert enc.failed.tolist() == [0] * per + [1] + [0] * (2 * per - 1)
+    assert off[per + 1] == off[per]                      # nothing written for it
