@@ -321,18 +321,36 @@ def role_gateway(a) -> int:
         session = stack.enter_context(zenoh.open(conf))
         gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate,
                             publish_samples=not a.no_samples, receive=a.receive)
-        pipe = gw.engine.pipeline                         # its emit: the session's fan-out to the gateway
-        emit0 = pipe.emit
+        from gateway import keys as _keys
+        from gateway.engine import Sink
+
+        effort_keys = [_keys.joint_efforts(robot.name, a.name) for a in robot.arms] + [_keys.thruster_effort(robot.name)]
+        batch_wake: dict[int, int] = {}                   # arrival ns -> received, this batch
+        emitted: list = []                                # (rows' t_ns, their completing frames' stamps, t)
+
+        class Before(Sink):                               # probes around the gateway's own sinks
+            rows = True
+
+            def effort_rows(self, ses, rows, log_ns):
+                emitted.append((rows["t_ns"].tolist(), log_ns.tolist(), tn()))
+
+        class After(Sink):
+            rows = True
+
+            def effort_rows(self, ses, rows, log_ns):
+                t = tn()
+                t_rows, arrs, t0 = emitted.pop()
+                for t_ns, arr in zip(t_rows, arrs):
+                    for key in effort_keys:
+                        if a.bare:
+                            efforts.append((key, t_ns, arr, t0, t))
+                        else:
+                            efforts.append((key, t_ns, arr, batch_wake.get(arr, 0), cur[2], t0, t))
+
+        gw.engine.add_sink(Before(), first=True)
+        gw.engine.add_sink(After())
         if a.bare:
             names = ["frame arrival", "effort emitted", "put returned"]
-
-            def emit(key, obj):
-                if "/efforts/" in key:
-                    t = tn()
-                    emit0(key, obj)
-                    efforts.append((key, obj.t_ns, pipe.log_ns, t, tn()))
-                else:
-                    emit0(key, obj)
         else:
             names = ["frame arrival", "received by a gateway thread", "pipeline starts on it", "effort emitted",
                      "put returned"]
@@ -351,7 +369,6 @@ def role_gateway(a) -> int:
                 bus.recv = timed_recv(bus)
             feed0 = gw.engine.feed_messages
             rows0 = gw.engine.feed_frames
-            batch_wake: dict[int, int] = {}               # arrival ns -> received, this batch
 
             def feed(pairs):                              # threads receive: python-can messages
                 t = tn()
@@ -380,17 +397,8 @@ def role_gateway(a) -> int:
                 for arr in arrs:
                     frames.append((arr, t, t, t + (end - t) // len(arrs)))
 
-            def emit(key, obj):
-                if "/efforts/" in key:
-                    t = tn()
-                    emit0(key, obj)
-                    arr = pipe.log_ns                     # the completing frame's arrival stamp
-                    efforts.append((key, obj.t_ns, arr, batch_wake.get(arr, 0), cur[2], t, tn()))
-                else:
-                    emit0(key, obj)
             gw.engine.feed_messages = feed                # the worker binds them when it starts
             gw.engine.feed_frames = feed_rows
-        pipe.emit = emit
         ticks: list[tuple[int, int, int]] = []
         tick0 = gw.on_tick
 
@@ -421,7 +429,7 @@ def role_gateway(a) -> int:
                 stop.set()
             threading.Thread(target=wait_stop, daemon=True).start()
             gw.run(stop)
-            dump = {"frames": frames, "efforts": efforts, "stamp_names": names, "stats": dict(pipe.stats),
+            dump = {"frames": frames, "efforts": efforts, "stamp_names": names, "stats": dict(gw.engine.stats),
                     "published": gw.published, "publish_errors": gw.publish_errors,
                     "service": dict(getattr(gw, "stats", {}) or {}), "drain": drain,
                     "pauses": pauses.items + ticks, "switch_interval_s": sys.getswitchinterval(),

@@ -299,7 +299,7 @@ class GatewayService:
         self.publish_samples = publish_samples
         # the session engine: drivers + estimator, log times, raw frames to the recorder
         channels = {name: getattr(buses[name], "channel", None) for name in wire_map.buses}
-        sinks = ([RecorderSink(record, channels=channels)] if record is not None else []) + [_Publish(self)]
+        sinks = ([RecorderSink(record, channels=channels, rows=True)] if record is not None else []) + [_Publish(self)]
         self.engine = Session(robot, sinks, model_robot=model_robot, layout=layout, fd=fd, estimate=estimate,
                               timing=timing)
         self.max_backlog = max_backlog
@@ -801,6 +801,8 @@ class GatewayService:
     # --- publishing --------------------------------------------------------------------------
 
     def _emit(self, key: str, obj) -> None:
+        """An object to publish (efforts and health at once; samples held, see the module
+        docstring); ``obj`` may also be its payload, already encoded."""
         if "/sensors/" not in key:
             self.publish(key, obj)
             self._efforts_out = True
@@ -819,13 +821,14 @@ class GatewayService:
             self.publish(key, obj)
 
     def publish(self, key: str, obj) -> None:
+        """Put ``obj`` (an object, or its payload bytes) on ``key``; never raises (counted)."""
         if not self._publishing:
             return
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._publishers[key] = codec.declare_publisher(self.session, key)
         try:
-            codec.put(pub, codec.encode(obj))
+            codec.put(pub, obj if obj.__class__ is bytes else codec.encode(obj))
             self.published += 1
         except Exception as exc:  # noqa: BLE001 - a closing session must not kill the worker
             self.publish_errors += 1
@@ -863,10 +866,36 @@ class GatewayService:
 
 
 class _Publish(Sink):
-    """The gateway's zenoh side of its session (:meth:`GatewayService._emit`)."""
+    """The gateway's zenoh side of its session (:meth:`GatewayService._emit`): samples and
+    efforts come as rows and go out as payloads written from them (no object per message)."""
+
+    rows = True
 
     def __init__(self, gw: GatewayService):
         self.gw = gw
+        self._enc = None
+
+    def _encoders(self, session):
+        if self._enc is None:
+            from gateway.engine.encode import RowEncoders
+
+            self._enc = RowEncoders(session.pipeline, "zenoh")
+        return self._enc
+
+    def sample_rows(self, session, events, log_ns) -> None:
+        gw = self.gw
+        if not gw.publish_samples:
+            return
+        emit = gw._emit
+        for key, _, data, k in self._encoders(session).sample_messages(events):
+            # a value that is not finite: codec.encode refuses the object, counted as a put error
+            emit(key, data if data is not None else session.pipeline.drivers.to_samples(events[k:k + 1])[0])
+
+    def effort_rows(self, session, rows, log_ns) -> None:
+        enc = self._encoders(session)
+        emit = self.gw._emit
+        for i, (key, _, data, _) in enumerate(enc.effort_messages(rows)):
+            emit(key, data if data is not None else enc.effort_object(rows, i))
 
     def emit(self, key: str, obj, log_ns: int) -> None:
         self.gw._emit(key, obj)

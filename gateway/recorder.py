@@ -531,6 +531,21 @@ class Recorder:
             raise ValueError(f"topic {topic}: log time {t} ns is negative")
         return self._put((info.key, t, now, data.encode()))
 
+    def record_encoded(self, topic: str, cls: type, data: bytes, log_time_ns: int) -> bool:
+        """Queue one record already encoded as this recorder encodes a ``cls`` dataclass (the
+        JSON of its fields, e.g. written from rows by :mod:`gateway.engine.encode`); the channel
+        is ``cls``'s, as :meth:`record` declares it. Returns ``False`` when refused (counted)."""
+        info = self._topics.get(topic)
+        if info is None:
+            with self._lock:
+                info = self._topics.get(topic) or self._new_topic(topic, _qualname(cls), json_schema_for(cls), cls)
+        elif info.cls is not cls:
+            raise TypeError(f"topic {topic}: expected {info.cls.__name__ if info.cls else 'records'}, "
+                            f"got {cls.__name__}")
+        if log_time_ns < 0:
+            raise ValueError(f"topic {topic}: log time {log_time_ns} ns is negative")
+        return self._put((info.key, int(log_time_ns), time.time_ns(), data))
+
     def record_can(self, bus: str, msg, log_time_ns: int | None = None) -> bool:
         """Queue one raw CAN frame (python-can ``Message``) on topic ``/can/<bus>``."""
         info = self._topics.get(CAN_TOPIC_PREFIX + bus) or self._declare_can(bus)

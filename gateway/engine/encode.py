@@ -396,3 +396,51 @@ class EffortJson(SampleJson):
         raw = buf.tobytes()
         o = off.tolist()
         return [raw[o[k]:o[k + 1]] for k in range(len(rows) * self.per_row)]
+
+
+class RowEncoders:
+    """A session's rows as payloads, one form: the encoders and the key of every message."""
+
+    def __init__(self, pipeline, form: str):
+        from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
+        from gateway import keys
+
+        robot, name = pipeline.robot, pipeline.name
+        arms = [a.name for a in robot.arms]
+        joints = robot.joint_names
+        self.samples = SampleJson(arms, joints, form)
+        self.efforts = EffortJson(pipeline.estimator, form) if pipeline.estimator is not None else None
+        self.sample_type = {kernel.WRENCH: WrenchSample, kernel.JOINT: JointSample, kernel.TORQUE: TorqueCommand,
+                            kernel.IMU: ImuSample, kernel.THRUSTER: ThrusterCommand, kernel.VALVE: ValveCommand}
+        self.sample_key = {kernel.WRENCH: [keys.wrench(name, a) for a in arms],
+                           kernel.JOINT: [keys.joint(name, j) for j in joints],
+                           kernel.TORQUE: [keys.torque_command(name, j) for j in joints],
+                           kernel.IMU: [keys.imu(name)], kernel.THRUSTER: [keys.thruster_command(name)],
+                           kernel.VALVE: [keys.valve_command(name)]}
+        self.effort_key = [keys.joint_efforts(name, a) for a in arms] + [keys.thruster_effort(name)]
+        self.effort_type = [JointEfforts] * len(arms) + [ThrusterEffort]
+
+    def sample_messages(self, events: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
+        """``(key, type, payload, k)`` per event (payload None: not finite, encode event ``k``'s object)."""
+        buf, off = self.samples.encode(events)
+        raw, o, failed = buf.tobytes(), off.tolist(), self.samples.failed
+        kinds, devs = events["kind"].tolist(), events["device"].tolist()
+        key, typ = self.sample_key, self.sample_type
+        return [(key[kd][dv], typ[kd], None if failed[k] else raw[o[k]:o[k + 1]], k)
+                for k, (kd, dv) in enumerate(zip(kinds, devs))]
+
+    def effort_messages(self, rows: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
+        """``(key, type, payload, row)`` per effort message, in :meth:`EstimatorCore.efforts` order
+        (payload None: not finite, encode :meth:`effort_object` instead)."""
+        enc = self.efforts
+        buf, off = enc.encode(rows)
+        raw, o, failed = buf.tobytes(), off.tolist(), enc.failed
+        per = enc.per_row
+        key, typ = self.effort_key, self.effort_type
+        return [(key[k % per], typ[k % per], None if failed[k] else raw[o[k]:o[k + 1]], k // per)
+                for k in range(len(rows) * per)]
+
+    def effort_object(self, rows: np.ndarray, message: int):
+        """The object of effort message ``message`` (the index :meth:`effort_messages` counts)."""
+        per = self.efforts.per_row
+        return self.efforts.core.efforts(rows[message // per:message // per + 1])[message % per]

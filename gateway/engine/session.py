@@ -73,10 +73,8 @@ class Session:
                  samples: bool = True, health_period_ns: int | None = None, log_offset_ns: int = 0,
                  pipeline_factory=Pipeline):
         self.sinks = list(sinks)
-        self._row_sinks = [s for s in self.sinks if s.rows]
-        self._object_sinks = [s for s in self.sinks if not s.rows]
-        self._frame_sinks = [s for s in self.sinks if type(s).frame is not Sink.frame]
-        rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows} if self._row_sinks else {}
+        self._sorted()
+        rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows}
         # pipeline_factory: a stand-in with Pipeline's interface (tests of what runs around it)
         self.pipeline = pipeline_factory(robot, emit=self._emit, model_robot=model_robot, layout=layout, fd=fd,
                                          estimate=estimate, settings=settings, timing=timing, samples=samples,
@@ -89,6 +87,17 @@ class Session:
         self.last_ns: int | None = None          # the last frame's time (frame clock)
         self.last_log_ns: int | None = None
         self._closed = False
+
+    def _sorted(self) -> None:
+        self._row_sinks = [s for s in self.sinks if s.rows]
+        self._object_sinks = [s for s in self.sinks if not s.rows]
+        self._frame_sinks = [s for s in self.sinks if type(s).frame is not Sink.frame]
+
+    def add_sink(self, sink: Sink, *, first: bool = False) -> None:
+        """Another output, after the others (``first``: before them; e.g. a probe that times
+        what the others do)."""
+        self.sinks.insert(0, sink) if first else self.sinks.append(sink)
+        self._sorted()
 
     def _emit(self, key: str, obj) -> None:
         log_ns = self.pipeline.log_ns

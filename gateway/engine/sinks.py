@@ -20,8 +20,11 @@ class RecorderSink(Sink):
 
     BACKPRESSURE_EVERY = 4096        # messages between two looks at the recorder's queue
 
-    def __init__(self, recorder, *, frames: bool = True, offline: bool = False, channels=None):
+    def __init__(self, recorder, *, frames: bool = True, offline: bool = False, channels=None,
+                 rows: bool = False):
         self.recorder, self.record_frames, self.offline = recorder, frames, offline
+        self.rows = rows                        # samples and efforts as rows: JSON written from them
+        self._enc = None
         self.channels = dict(channels or {})    # bus -> its channel, recorded with frames given as rows
         self._n = 0
 
@@ -52,3 +55,28 @@ class RecorderSink(Sink):
 
     def emit(self, key: str, obj, log_ns: int) -> None:
         self._put(self.recorder.record(key, obj, log_ns), key)
+
+    # rows (``rows=True``): the recorder's JSON written straight from them
+    def _encoders(self, session):
+        enc = self._enc
+        if enc is None or enc[0] is not session:
+            from .encode import RowEncoders
+
+            enc = self._enc = (session, RowEncoders(session.pipeline, "mcap"))
+        return enc[1]
+
+    def sample_rows(self, session, events: np.ndarray, log_ns: np.ndarray) -> None:
+        self._record(self._encoders(session).sample_messages(events), log_ns,
+                     lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
+
+    def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        enc = self._encoders(session)
+        self._record(enc.effort_messages(rows), log_ns, lambda i: enc.effort_object(rows, i))
+
+    def _record(self, messages, log_ns: np.ndarray, object_of) -> None:
+        rec, logs = self.recorder, log_ns.tolist()
+        for i, (key, cls, data, k) in enumerate(messages):
+            if data is None:                  # a value that is not finite: the object's own encoding
+                self._put(rec.record(key, object_of(i), logs[k]), key)
+            else:
+                self._put(rec.record_encoded(key, cls, data, logs[k]), key)
