@@ -204,7 +204,9 @@ class _RowBacklog:
         start, end = starts.copy(), starts + np.array(sizes, dtype=np.int64)
         blocked = np.array([self.unread[n] and not all_read for n in self.names], dtype=np.bool_)
         order = np.empty(min(max_n, self.n), dtype=np.int64)
-        k = _merge_heads(flat["t_ns"], start, end, blocked, len(order), order)
+        # a contiguous copy: a field view types as 'A' in numba, but as 'C' when it has one row
+        # (numpy), and each is a compilation of its own
+        k = _merge_heads(np.ascontiguousarray(flat["t_ns"]), start, end, blocked, len(order), order)
         self._head += start - starts
         self.n -= k
         return flat[order[:k]]

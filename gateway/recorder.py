@@ -149,10 +149,11 @@ def can_frame_json_rows(rows, channel=None) -> list[bytes]:
     straight from a socket): the same bytes python-can's message of the frame would give, with
     ``channel`` (the receiving bus's) and ``is_rx`` true (a received frame)."""
     b = _JSON_BOOL
+    if not (channel is None or isinstance(channel, (str, int))):
+        channel = str(channel)          # as can_frame_json: a list or an object is not a JSON value
     ch = _CHANNEL_JSON.get(channel)
     if ch is None:
-        ch = _CHANNEL_JSON[channel] = _encode(channel if channel is None or isinstance(channel, (str, int))
-                                              else str(channel))
+        ch = _CHANNEL_JSON[channel] = _encode(channel)
     out = []
     b64 = base64.b64encode
     t_ns, ids, flags = rows["t_ns"].tolist(), rows["can_id"].tolist(), rows["flags"].tolist()

@@ -6,8 +6,12 @@ minute for the estimator on a loaded two-core machine; from the cache, well unde
 run whose first epochs must not wait (the SocketCAN tier compiles this way on the host, for the
 VM's CPU, because compiling under emulation would take a quarter of an hour).
 
-It runs a few hundred synthetic frames of the paper robot through a :class:`Session`; the kernels
-do not depend on the robot, so every robot then starts at once.
+It runs synthetic frames of the paper robot through a :class:`Session` and through the live
+gateway's own receive paths (SocketCAN and ``udp_multicast`` datagrams read straight into rows,
+the direct mode's backlog, the recorder's and publisher's JSON written from rows): numba compiles
+a kernel once per argument types, so every path that calls a kernel differently must run here.
+The kernels do not depend on the robot, so every robot then starts at once.
+``tests/engine/test_warm.py`` checks that a gateway run after this compiles nothing.
 """
 from __future__ import annotations
 
@@ -49,15 +53,102 @@ def frames(n_steps: int = 120):
 
 
 def warm() -> float:
-    """Run every kernel once; returns the wall time it took, s."""
+    """Run every kernel once, on every path that calls it with its own argument types: a
+    session fed one frame at a time (replay, the demo, a simulated series) and the live
+    gateway's (:func:`_gateway`). Returns the wall time it took, s."""
     import robot_description
     from gateway.engine import Session
 
     t0 = time.perf_counter()
-    with Session(robot_description.load("paper_robot")) as ses:
+    robot = robot_description.load("paper_robot")
+    with Session(robot) as ses:
         for bus, msg in frames():
             ses.feed(bus, msg)
+    _gateway(robot, frames(360))
     return time.perf_counter() - t0
+
+
+class _NullPublisher:
+    def put(self, payload, **kwargs) -> None:
+        pass
+
+    def undeclare(self) -> None:
+        pass
+
+
+class _NullZenoh:
+    """Stands in for a zenoh session: the gateway's payloads are encoded, then go nowhere."""
+
+    def declare_publisher(self, key, **kwargs):
+        return _NullPublisher()
+
+
+def _batches(start: int, stop: int):
+    """``(i, j)`` slices of ``start..stop`` of 1, 2, 5, 13 and 16 frames in turn: what arrives
+    together varies, and a field of one row types differently in numba from one of several."""
+    sizes, k = (1, 2, 5, 13, 16), 0
+    while start < stop:
+        j = min(stop, start + sizes[k % len(sizes)])
+        yield start, j
+        start, k = j, k + 1
+
+
+def _gateway(robot, msgs) -> None:
+    """The live gateway's own code on ``msgs``, as :class:`gateway.bridge.GatewayService` builds
+    it (its recorder and publisher sinks take rows: the JSON kernels): a third through the
+    threads mode's ``feed_messages``, a third each as SocketCAN and ``udp_multicast`` datagrams
+    read by :class:`drivers.receive.BusReader` and merged by the direct mode's backlog."""
+    import socket
+    import tempfile
+    from pathlib import Path
+
+    import can
+    from can.interfaces.socketcan.socketcan import build_can_frame
+    from can.interfaces.udp_multicast.utils import pack_message
+
+    from drivers import wire
+    from drivers.receive import BusReader
+    from gateway.bridge import DRAIN_MAX, GatewayService
+    from gateway.recorder import Recorder
+
+    names = list(wire.WireMap.from_robot(robot).buses)
+    with tempfile.TemporaryDirectory(prefix="bsc-warm-") as tmp, \
+            Recorder(Path(tmp) / "warm.mcap") as rec:
+        buses = {n: can.Bus(interface="virtual", channel=f"bsc-warm-{n}-{id(rec)}") for n in names}
+        gw = GatewayService(robot, buses, _NullZenoh(), record=rec)
+        try:
+            third = len(msgs) // 3
+            st = gw.bus_state
+            for i, j in _batches(0, third):            # threads mode: what arrived together
+                gw._process([(st[b], m) for b, m in msgs[i:j]])
+            gw.publish_health()
+            for kind, pack, part in (("socketcan", build_can_frame, msgs[third:2 * third]),
+                                     ("udp", pack_message, msgs[2 * third:])):
+                pairs = {n: socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM) for n in names}
+                try:
+                    readers = {n: BusReader(pairs[n][0], gw._backlog.index[n], kind) for n in names}
+                    for i, j in _batches(0, len(part)):
+                        stamps = {n: [] for n in names}
+                        for b, m in part[i:j]:
+                            pairs[b][1].send(pack(m))
+                            stamps[b].append(round(m.timestamp * 1e9))
+                        for n in names:                # the firmware's stamps, not the read time
+                            rows = readers[n].read(DRAIN_MAX)
+                            rows["t_ns"] = stamps[n]
+                            gw._backlog.append(n, rows)
+                        gw._process_rows(gw._backlog.take(len(gw._backlog), all_read=True))
+                finally:
+                    for a, b in pairs.values():
+                        a.close()
+                        b.close()
+                gw.publish_health()
+            gw._final_flush()
+        finally:
+            gw.close()
+            for b in buses.values():
+                b.shutdown()
+        if gw.pipeline_errors:
+            raise RuntimeError(f"warm: the gateway's pipeline failed on {gw.pipeline_errors} batches (see the log)")
 
 
 if __name__ == "__main__":

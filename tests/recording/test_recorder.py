@@ -354,3 +354,18 @@ def test_frames_given_as_rows_are_recorded_as_their_messages():
                                 data=bytes(rnd.randrange(256) for _ in range(n)), channel="vcan1", check=False))
     rows = columns_from_messages([(0, m) for m in msgs])
     assert can_frame_json_rows(rows, "vcan1") == [can_frame_json(m)[1] for m in msgs]
+
+
+@pytest.mark.parametrize("channel", [["a", "list"], {"a": 1}, 3.5, ("t", 1)])
+def test_frames_given_as_rows_take_any_channel_a_bus_may_have(channel):
+    """A bus's ``channel`` can be any object (python-can ``virtual``: a list of queues); rows are
+    recorded with its text, as a message carrying it is, and never raise (the direct gateway's
+    recorder sink takes every batch this way: an exception there lost the whole batch)."""
+    import can
+
+    from drivers.kernel import columns_from_messages
+    from gateway.recorder import can_frame_json, can_frame_json_rows
+
+    msg = can.Message(timestamp=1.5, arbitration_id=0x123, data=b"\x01\x02", channel=channel)
+    rows = columns_from_messages([(0, msg)])
+    assert can_frame_json_rows(rows, channel) == [can_frame_json(msg)[1]]
