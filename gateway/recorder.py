@@ -547,6 +547,37 @@ class Recorder:
             raise ValueError(f"topic {topic}: log time {log_time_ns} ns is negative")
         return self._put((info.key, int(log_time_ns), time.time_ns(), data))
 
+    def record_encoded_many(self, items) -> int:
+        """:meth:`record_encoded` for many ``(topic, cls, data, log_time_ns)`` at once (one look
+        at the queue's room); returns how many were refused (counted)."""
+        now = time.time_ns()
+        topics = self._topics
+        out = []
+        for topic, cls, data, t in items:
+            info = topics.get(topic)
+            if info is None or info.cls is not cls:
+                if not self.record_encoded(topic, cls, data, t):     # declares it, checks the type
+                    return len(items) - len(out)                   # full or closed: counted there
+                out.append(None)
+                continue
+            if t < 0:
+                raise ValueError(f"topic {topic}: log time {t} ns is negative")
+            out.append((info.key, t, now, data))
+        queue = self._queue
+        room = self._queue_size - len(queue)
+        todo = [x for x in out if x is not None]
+        if self._closed or room < len(todo):
+            take = 0 if self._closed else max(0, room)
+            queue.extend(todo[:take])
+            with self._lock:
+                if self._closed:
+                    self._dropped_closed += len(todo) - take
+                else:
+                    self._dropped_full += len(todo) - take
+            return len(todo) - take
+        queue.extend(todo)
+        return 0
+
     def record_can(self, bus: str, msg, log_time_ns: int | None = None) -> bool:
         """Queue one raw CAN frame (python-can ``Message``) on topic ``/can/<bus>``."""
         info = self._topics.get(CAN_TOPIC_PREFIX + bus) or self._declare_can(bus)
@@ -672,6 +703,11 @@ class Recorder:
             files=len(self._paths),
             bytes_written=self._bytes_done + (stream.tell() if stream is not None else 0),
             error=None if self._error is None else _describe(self._error))
+
+    @property
+    def queue_depth(self) -> int:
+        """Messages waiting for the writer thread now."""
+        return len(self._queue)
 
     @property
     def queue_size(self) -> int:

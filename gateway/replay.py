@@ -42,6 +42,8 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from gateway import mcaplog
 from gateway.mcaplog import McapFileError
 from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX,
@@ -126,31 +128,56 @@ class LogContext:
 def read_context(path: str | os.PathLike[str]) -> LogContext:
     """The summary, metadata and attachments of a complete log (see :func:`readable`)."""
     from mcap.reader import SeekingReader
+    from mcap.records import Attachment, Metadata
 
     path = Path(path)
     mcaplog.scan_header(path)
     ok, why = mcaplog.check_footer(path)
     if not ok:
         raise McapFileError(f"{path}: file is truncated ({why}); run `bsc recover {path}` first")
+    from gateway.engine.sources import read_summary
+
     try:
-        with open(path, "rb") as f:
-            reader = SeekingReader(f, validate_crcs=True)
-            summary = reader.get_summary()
-            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
-    except mcaplog._PARSE_ERRORS as exc:
+        summary = read_summary(path)
+        if summary is None:                   # no summary section: the library walks the records
+            with open(path, "rb") as f:
+                reader = SeekingReader(f, validate_crcs=True)
+                metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+                attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
+            return LogContext(path, metadata, attachments, {}, 0, None, None)
+        metadata, attachments = {}, {}
+        with open(path, "rb") as f:           # the few records the summary points at
+            for off, ln, _ in summary.metadata:
+                rec = _record_at(f, off, ln, Metadata)
+                metadata[rec.name] = dict(rec.metadata)
+            for off, ln, _ in summary.attachments:
+                rec = _record_at(f, off, ln, Attachment)
+                attachments[rec.name] = (rec.media_type, rec.data)
+    except (mcaplog._PARSE_ERRORS + (struct.error,)) as exc:
         raise McapFileError(f"{path}: corrupt summary ({exc}); `bsc recover {path}` "
                             "rebuilds it") from exc
     topics: dict[str, str] = {}
-    count, start, end = 0, None, None
-    if summary is not None:
-        for ch in summary.channels.values():
-            schema = summary.schemas.get(ch.schema_id)
-            topics.setdefault(ch.topic, schema.name if schema else "")
-        st = summary.statistics
-        if st is not None and st.message_count:
-            count, start, end = st.message_count, st.message_start_time, st.message_end_time
-    return LogContext(path, metadata, attachments, topics, count, start, end)
+    for topic, sid in summary.channels.values():
+        topics.setdefault(topic, summary.schemas.get(sid, ""))
+    return LogContext(path, metadata, attachments, topics, summary.message_count, summary.start_ns,
+                      summary.end_ns)
+
+
+def _record_at(f, offset: int, length: int, kind):
+    """The record of type ``kind`` (an ``mcap.records`` class) at ``offset`` of ``length`` bytes."""
+    from mcap.data_stream import ReadDataStream
+
+    f.seek(offset)
+    head = f.read(9)
+    if len(head) < 9:
+        raise ValueError(f"no record at offset {offset}")
+    (n,) = struct.unpack_from("<Q", head, 1)
+    body = f.read(n)
+    if len(body) < n or n + 9 != length:
+        raise ValueError(f"record at offset {offset} is cut short")
+    import io
+
+    return kind.read(ReadDataStream(io.BytesIO(body)))
 
 
 @contextlib.contextmanager
@@ -552,7 +579,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                    robot: str | None = None, model: str | None = None, fd: bool | None = None,
                    start_s: float | None = None, duration_s: float | None = None,
                    can_ids: Iterable[int] | None = None, topics: Iterable[str] | None = None,
-                   copy_can: bool = False, overwrite: bool = False,
+                   copy_can: bool = False, overwrite: bool = False, samples: bool = False,
                    pipeline_factory: Callable[..., Any] | None = None,
                    progress: bool = False, warn: Warn = _no_warn) -> OfflineReport:
     """Feed the raw frames of ``path`` through a fresh pipeline; write ``OUT/replay.mcap`` and
@@ -563,7 +590,9 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     gateway does when it stops; those emits get the last frame's time) and one health snapshot per bus and device
     (at the last frame's time) is recorded and its rejection counters fill the report.
     ``robot`` overrides the log's URDF (``model`` the estimator's belief, default the same).
-    ``copy_can`` also copies the replayed raw frames, making the output replayable itself.
+    ``copy_can`` also copies the replayed raw frames, making the output replayable itself;
+    ``samples`` also records every decoded sample (by default the output holds the efforts and the
+    health).
     ``topics`` (globs over ``/can/<bus>``) and ``can_ids`` select frames; ``start_s`` and
     ``duration_s`` a window relative to the log's first message.
     """
@@ -571,6 +600,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
     from gateway.engine.sinks import RecorderSink
+    from gateway.engine.sources import mcap_frames
     from gateway.recorder import Recorder
 
     import robot_description
@@ -615,15 +645,44 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             rec.add_session_context(**context)
 
             class Count(Sink):
+                """What the replay wrote, for the report (rows: no object built for it)."""
+
+                rows = True
+                keys = None
+
+                def _keys(self, session):
+                    if self.keys is None:
+                        from gateway.engine.encode import RowEncoders
+
+                        self.keys = RowEncoders(session.pipeline, "mcap")
+                    return self.keys
+
+                def sample_rows(self, session, events, log_ns) -> None:
+                    table = self._keys(session).sample_key
+                    kinds["samples"] += len(events)
+                    for kd, dv in zip(events["kind"].tolist(), events["device"].tolist()):
+                        by_key[table[kd][dv]] += 1
+
+                def effort_rows(self, session, rows, log_ns) -> None:
+                    est = session.pipeline.estimator
+                    names = self._keys(session).effort_key
+                    flags = rows["flags"].astype(bool)
+                    good = [int((~flags[:, bits].any(axis=1)).sum()) for bits in est._arm_bits]
+                    good.append(int((~flags[:, est._thr_bits].any(axis=1)).sum()))
+                    for key in names:
+                        by_key[key] += len(rows)
+                    kinds["efforts"] += len(rows) * len(names)
+                    kinds["good_efforts"] += sum(good)
+
                 def emit(self, key: str, obj, log_ns: int) -> None:
                     by_key[key] += 1
-                    if isinstance(obj, (JointEfforts, ThrusterEffort)):
-                        kinds["efforts"] += 1
-                        kinds["good_efforts"] += bool(obj.good)
-                    elif isinstance(obj, (DeviceHealth, BusHealth)):
+                    if isinstance(obj, (DeviceHealth, BusHealth)):
                         kinds["health"] += 1
                     elif isinstance(obj, Alert):
                         kinds["alerts"] += 1
+                    elif isinstance(obj, (JointEfforts, ThrusterEffort)):
+                        kinds["efforts"] += 1
+                        kinds["good_efforts"] += bool(obj.good)
                     else:
                         kinds["samples"] += 1
 
@@ -631,8 +690,9 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             # filter's prior, without which its wrenches differ from the live run's
             layout = (ThrusterLayout.from_scenario_text(scenario[1].decode("utf-8", "replace"),
                                                         f"{path}: {SCENARIO_ATTACHMENT}") if scenario else None)
-            ses = Session(rob, [RecorderSink(rec, frames=copy_can, offline=True), Count()], model_robot=model_robot,
-                          fd=use_fd, layout=layout, pipeline_factory=Pipeline)
+            ses = Session(rob, [RecorderSink(rec, frames=copy_can, offline=True, rows=True), Count()],
+                          model_robot=model_robot, fd=use_fd, layout=layout, pipeline_factory=Pipeline,
+                          samples=samples)
             known = set(ses.buses)
             skipped: Counter[str] = Counter()
             bar = _bar(progress, ctx, start_ns, end_ns, "replay")
@@ -640,19 +700,45 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             first = last = None
             last_bar = None
             t0 = time.perf_counter()
-            for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
-                                               start_ns=start_ns, end_ns=end_ns):
-                if bus not in known:
-                    skipped[f"unknown_bus:{bus}"] += 1
-                    continue
-                ses.feed(bus, msg, log_ns=t)
-                frames += 1
-                if first is None:
-                    first = last_bar = t
-                last = t
-                if bar is not None and t - last_bar >= 100_000_000:
-                    bar.update((t - last_bar) / 1e9)
-                    last_bar = t
+            # rows straight from the chunks; copied frames need all of each record (its channel),
+            # which rows do not keep: then record by record
+            chunks = None if copy_can else mcap_frames(src, buses, start_ns=start_ns, end_ns=end_ns,
+                                                       can_ids=can_ids)
+            if chunks is not None:
+                to_session = np.array([ses.buses.index(b) if b in known else -1 for b in buses], dtype=np.int64)
+                for chunk in chunks:
+                    idx = to_session[chunk.frames["bus"]]
+                    rows, log = chunk.frames, chunk.log_ns
+                    if (idx < 0).any():
+                        for b in np.unique(idx_bus := chunk.frames["bus"][idx < 0]).tolist():
+                            skipped[f"unknown_bus:{buses[b]}"] += int((idx_bus == b).sum())
+                        rows, log, idx = rows[idx >= 0], log[idx >= 0], idx[idx >= 0]
+                    if not len(rows):
+                        continue
+                    rows = rows.copy()
+                    rows["bus"] = idx
+                    ses.feed_frames(rows, log)
+                    frames += len(rows)
+                    if first is None:
+                        first = last_bar = int(log[0])
+                    last = int(log[-1])
+                    if bar is not None and last - last_bar >= 100_000_000:
+                        bar.update((last - last_bar) / 1e9)
+                        last_bar = last
+            else:                             # no summary, or frames copied: record by record
+                for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
+                                                   start_ns=start_ns, end_ns=end_ns):
+                    if bus not in known:
+                        skipped[f"unknown_bus:{bus}"] += 1
+                        continue
+                    ses.feed(bus, msg, log_ns=t)
+                    frames += 1
+                    if first is None:
+                        first = last_bar = t
+                    last = t
+                    if bar is not None and t - last_bar >= 100_000_000:
+                        bar.update((t - last_bar) / 1e9)
+                        last_bar = t
             if bar is not None:
                 bar.close()
             final = ses.close()              # end of input: epochs still waiting, last health

@@ -59,6 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="the estimator's robot model, if not the robot's own")
     off.add_argument("--copy-can", action="store_true",
                      help="copy the raw frames into the output (a replayable output)")
+    off.add_argument("--samples", action="store_true",
+                     help="also record every decoded sample (default: efforts and health only)")
     off.add_argument("--force", action="store_true", help="replace DIR/replay.mcap, report.json")
     zen = parser.add_argument_group("zenoh playback")
     zen.add_argument("--wait", type=float, default=0.0, metavar="S",
@@ -110,7 +112,7 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
     r = replay_offline(args.file, args.out, robot=args.robot, model=args.model,
                        fd=True if args.fd else None, start_s=args.start,
                        duration_s=args.duration, can_ids=can_ids, topics=args.topic or None,
-                       copy_can=args.copy_can, overwrite=args.force,
+                       copy_can=args.copy_can, overwrite=args.force, samples=args.samples,
                        progress=not args.quiet, warn=_warn)
     print(f"bsc replay: {r.frames_in} frames, {r.log_duration_s:.3f} s of log in "
           f"{r.wall_s:.2f} s ({r.speed_x_realtime:.1f}x real time, {r.frames_per_s:.0f} frames/s)")

@@ -28,16 +28,18 @@ class RecorderSink(Sink):
         self.channels = dict(channels or {})    # bus -> its channel, recorded with frames given as rows
         self._n = 0
 
-    def _put(self, ok: bool, what: str) -> None:
+    def _put(self, ok: bool, what: str, n: int = 1) -> None:
         if self.offline:
             if not ok:
                 from gateway.recorder import RecorderError
 
                 raise RecorderError(f"the recorder refused {what}: {self.recorder.error or self.recorder.stats}")
-            self._n += 1
-            rec = self.recorder
-            if self._n % self.BACKPRESSURE_EVERY == 0 and rec.stats.queue_depth > rec.queue_size // 2:
-                rec.flush()
+            self._n += n
+            if self._n >= self.BACKPRESSURE_EVERY:
+                self._n = 0
+                rec = self.recorder
+                if rec.queue_depth > rec.queue_size // 2:
+                    rec.flush()
 
     def frame(self, bus: str, msg, log_ns: int) -> None:
         if self.record_frames:
@@ -46,12 +48,14 @@ class RecorderSink(Sink):
     def frames(self, buses: Sequence[str], frames: np.ndarray, log_ns: np.ndarray) -> None:
         if not self.record_frames or not len(frames):
             return
+        # in the order given (the order they were fed): a replay feeds the file's order, so a
+        # batch merged across buses is written run by run, never bus by bus
         bus_of = frames["bus"]
-        for i, name in enumerate(buses):
-            sel = bus_of == i
-            if sel.any():
-                refused = self.recorder.record_can_rows(name, frames[sel], log_ns[sel], self.channels.get(name))
-                self._put(not refused, f"frames of bus {name}")
+        cuts = [0, *(np.flatnonzero(bus_of[1:] != bus_of[:-1]) + 1).tolist(), len(frames)]
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            name = buses[int(bus_of[a])]
+            refused = self.recorder.record_can_rows(name, frames[a:b], log_ns[a:b], self.channels.get(name))
+            self._put(not refused, f"frames of bus {name}", b - a)
 
     def emit(self, key: str, obj, log_ns: int) -> None:
         self._put(self.recorder.record(key, obj, log_ns), key)
@@ -75,8 +79,12 @@ class RecorderSink(Sink):
 
     def _record(self, messages, log_ns: np.ndarray, object_of) -> None:
         rec, logs = self.recorder, log_ns.tolist()
+        batch = []
         for i, (key, cls, data, k) in enumerate(messages):
             if data is None:                  # a value that is not finite: the object's own encoding
                 self._put(rec.record(key, object_of(i), logs[k]), key)
             else:
-                self._put(rec.record_encoded(key, cls, data, logs[k]), key)
+                batch.append((key, cls, data, logs[k]))
+        if batch:
+            refused = rec.record_encoded_many(batch)
+            self._put(not refused, f"{refused} of {len(batch)} records", len(batch))

@@ -55,7 +55,7 @@ def frames(n_steps: int = 120):
 def warm() -> float:
     """Run every kernel once, on every path that calls it with its own argument types: a
     session fed one frame at a time (replay, the demo, a simulated series) and the live
-    gateway's (:func:`_gateway`). Returns the wall time it took, s."""
+    gateway's and an offline replay's (:func:`_gateway`). Returns the wall time it took, s."""
     import robot_description
     from gateway.engine import Session
 
@@ -149,6 +149,11 @@ def _gateway(robot, msgs) -> None:
                 b.shutdown()
         if gw.pipeline_errors:
             raise RuntimeError(f"warm: the gateway's pipeline failed on {gw.pipeline_errors} batches (see the log)")
+        # offline replay of what it recorded: frames read from the chunks into rows
+        from gateway.replay import replay_offline
+
+        rec.close()
+        replay_offline(Path(tmp) / "warm.mcap", Path(tmp) / "replay", robot=robot.name)
 
 
 if __name__ == "__main__":

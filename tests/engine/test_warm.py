@@ -5,7 +5,8 @@ reads kernels warmed on the host, and one kernel compiled under emulation instea
 (a gateway that compiled its socket reader there counted no frame while the test waited). So:
 in a fresh process, warm, note every compiled signature of every kernel, run the gateway as it
 runs on SocketCAN and on ``udp_multicast`` (direct receive of the real wire bytes, recording,
-publishing on zenoh over loopback, health), and find nothing new compiled.
+publishing on zenoh over loopback, health), replay what it recorded offline, and find nothing
+new compiled.
 """
 from __future__ import annotations
 
@@ -106,6 +107,10 @@ with tempfile.TemporaryDirectory() as tmp:
                         "recorded": rec.stats.written}
         for rx, tx in pairs.values():
             tx.close()
+    from gateway.replay import replay_offline
+
+    r = replay_offline(Path(tmp) / "socketcan.mcap", Path(tmp) / "replay", robot=sim.robot.name, samples=True)
+    report["replay"] = {"frames": r.frames_in, "efforts": r.efforts, "samples": r.samples}
 report["new"] = sorted(compiled() - before)
 print(json.dumps(report))
 """
@@ -123,5 +128,7 @@ def test_a_gateway_after_warm_compiles_nothing(tmp_path):
         r = report[kind]
         assert r["sent"] > 1000 and r["received"] == r["processed"] == r["sent"], (kind, r)
         assert r["errors"] == 0 and r["published"] > r["sent"] // 4 and r["recorded"] > r["sent"], (kind, r)
+    r = report["replay"]
+    assert r["frames"] == report["socketcan"]["sent"] and r["efforts"] > 0 and r["samples"] > 0, r
     assert report["new"] == [], "compiled after warm (add their path to gateway/engine/warm.py):\n" + \
         "\n".join(report["new"])

@@ -63,6 +63,16 @@ class StandInPipeline:
         for listener in self._listeners[bus]:
             listener.on_message_received(msg)
 
+    def feed_frames(self, rows, log_ns=None):
+        """Rows as the frames they are (the session engine feeds a replay as rows)."""
+        for r in rows:
+            f = int(r["flags"])
+            msg = can.Message(timestamp=int(r["t_ns"]) / 1e9, arbitration_id=int(r["can_id"]),
+                              is_extended_id=bool(f & 1), is_remote_frame=bool(f & 2), is_error_frame=bool(f & 4),
+                              is_fd=bool(f & 8), bitrate_switch=bool(f & 16), error_state_indicator=bool(f & 32),
+                              dlc=int(r["dlc"]), data=bytes(r["data"][:int(r["length"])]), check=False)
+            self.feed(self.buses[int(r["bus"])], msg)
+
     def flush(self):
         pass
 
@@ -255,6 +265,35 @@ def test_offline_replay_with_the_real_pipeline(robot, tmp_path):
     assert sum(len(v) for v in live.values()) > 0
     assert efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME) == live
     assert report.efforts == sum(len(v) for v in live.values())
+
+
+def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(robot, tmp_path):
+    """Efforts and health by default; ``samples=True`` adds every decoded sample; ``copy_can``
+    copies each raw frame record as it was (channel and all), and the efforts stay the same."""
+    from gateway.pipeline import Pipeline
+
+    path = tmp_path / "live.mcap"
+    emitted = record_live(path, robot, synthetic_frames(robot, 200, seed=3), Pipeline)
+    n_samples = sum(1 for k, _ in emitted if "/sensors/" in k)
+    live = efforts_by_topic(path)
+
+    def topics(p):
+        return [t for t, _, _ in rp.iter_file_order(p, lambda t, s: True)]
+
+    plain = rp.replay_offline(path, tmp_path / "plain")
+    out = tmp_path / "plain" / rp.OUTPUT_NAME
+    assert plain.samples == 0 and not any("/sensors/" in t or t.startswith("/can/") for t in topics(out))
+    assert efforts_by_topic(out) == live
+
+    full = rp.replay_offline(path, tmp_path / "full", samples=True, copy_can=True)
+    out = tmp_path / "full" / rp.OUTPUT_NAME
+    assert full.samples == n_samples > 0 and sum("/sensors/" in t for t in topics(out)) == n_samples
+    assert efforts_by_topic(out) == live
+
+    def frames(p):
+        return [(t, m.log_time, bytes(m.data)) for t, _, m in rp.iter_file_order(p, lambda t, s: t.startswith("/can/"))]
+
+    assert frames(out) == frames(path) and len(frames(path)) == full.frames_in
 
 
 def test_offline_cli_filters_and_report(session, tmp_path, capsys, standin):

@@ -1,0 +1,395 @@
+"""Where a session's frames come from, as rows: a recorded MCAP log, read chunk by chunk.
+
+:func:`mcap_frames` gives the raw CAN frames of a bsc log (channels ``/can/<bus>``, schema
+``bsc.CanFrame``) as :data:`drivers.kernel.FRAME_DTYPE` rows with their log times, in FILE order
+(the order the live gateway recorded, and fed, them), one chunk at a time: the chunk is read at
+its offset from the summary's chunk index, decompressed (zstd or none) and CRC-checked, and one
+compiled pass walks its records and parses the recorder's own frame JSON (``Recorder.record_can``:
+one exact form) straight into rows. A record in any other form (another writer, another key
+order) is parsed by ``json`` instead, in its place; bad data raises
+:class:`gateway.mcaplog.McapFileError` naming the log and ``bsc recover``.
+
+A log without a valid summary (a killed recorder) is read by the record-by-record reader
+(:func:`gateway.replay.iter_can_frames`), as before; ``bsc replay`` recovers a truncated log first.
+"""
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+from typing import Iterator, NamedTuple
+
+import numpy as np
+from numba import njit
+
+from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
+
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+_OP_MESSAGE, _OP_CHUNK = 0x05, 0x06
+_CHUNK_FIXED = struct.Struct("<QQQII")          # start, end, uncompressed size, crc, compression length
+_KEYS = (b'{"t_ns":', b',"arbitration_id":', b',"is_extended_id":', b',"is_remote_frame":',
+         b',"is_error_frame":', b',"is_fd":', b',"bitrate_switch":', b',"error_state_indicator":',
+         b',"is_rx":', b',"dlc":', b',"data":"', b'","channel":')
+_B64 = np.full(256, 255, dtype=np.uint8)
+for _i, _c in enumerate(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"):
+    _B64[_c] = _i
+
+
+class _Chunk(NamedTuple):
+    start_ns: int
+    end_ns: int
+    offset: int
+    channels: frozenset
+
+
+class Summary(NamedTuple):
+    """What a log's summary section says, parsed with ``struct`` (the library builds an object
+    per record and a dict per chunk index: about 40 ms for an 8 s log)."""
+
+    schemas: dict            # schema id -> name
+    channels: dict           # channel id -> (topic, schema id)
+    chunks: list             # _Chunk per chunk
+    message_count: int
+    start_ns: int | None
+    end_ns: int | None
+    metadata: list           # (offset, length, name) of every metadata record
+    attachments: list        # (offset, length, name) of every attachment record
+
+
+def read_summary(path: Path) -> Summary | None:
+    """The summary of a complete log (None: it has none, or it is not readable)."""
+    u8, u4, u2 = struct.Struct("<Q"), struct.Struct("<I"), struct.Struct("<H")
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        if size < 8 + 29 + 8:
+            return None
+        f.seek(size - 8 - 29)
+        foot = f.read(29)
+        if foot[0] != 0x02:
+            return None
+        start, offset_start = struct.unpack_from("<QQ", foot, 9)
+        if start == 0 or start >= size:
+            return None
+        f.seek(start)
+        data = f.read((offset_start or size - 8 - 29) - start)
+
+    def string(p):
+        (n,) = u4.unpack_from(data, p)
+        return data[p + 4:p + 4 + n].decode("utf-8", "replace"), p + 4 + n
+
+    schemas, channels, chunks, meta, atts = {}, {}, [], [], []
+    count, t0s, t1s = 0, None, None
+    p = 0
+    while p + 9 <= len(data):
+        op = data[p]
+        (n,) = u8.unpack_from(data, p + 1)
+        b, p = p + 9, p + 9 + n
+        if p > len(data):
+            return None
+        if op == 0x03:                                       # Schema
+            (sid,) = u2.unpack_from(data, b)
+            schemas[sid], _ = string(b + 2)
+        elif op == 0x04:                                     # Channel
+            cid, sid = struct.unpack_from("<HH", data, b)
+            topic, _ = string(b + 4)
+            channels[cid] = (topic, sid)
+        elif op == 0x08:                                     # ChunkIndex
+            t0, t1, off, _ = struct.unpack_from("<QQQQ", data, b)
+            (m,) = u4.unpack_from(data, b + 32)
+            chans = frozenset(u2.unpack_from(data, b + 36 + 10 * k)[0] for k in range(m // 10))
+            chunks.append(_Chunk(t0, t1, off, chans))
+        elif op == 0x0B:                                     # Statistics
+            (count,) = u8.unpack_from(data, b)
+            t0s, t1s = struct.unpack_from("<QQ", data, b + 8 + 2 + 4 * 4)
+        elif op == 0x0D:                                     # MetadataIndex
+            off, ln = struct.unpack_from("<QQ", data, b)
+            meta.append((off, ln, string(b + 16)[0]))
+        elif op == 0x0A:                                     # AttachmentIndex
+            off, ln = struct.unpack_from("<QQ", data, b)
+            atts.append((off, ln, string(b + 40)[0]))
+    if not count:
+        t0s = t1s = None
+    return Summary(schemas, channels, chunks, count, t0s, t1s, meta, atts)
+
+
+class FrameChunk(NamedTuple):
+    frames: np.ndarray        # FRAME_DTYPE rows, bus = index into the buses asked for
+    log_ns: np.ndarray        # int64, each frame's log time
+
+
+@_jit
+def _match(d, p, end, key):
+    n = key.shape[0]
+    if p + n > end:
+        return -1
+    for k in range(n):
+        if d[p + k] != key[k]:
+            return -1
+    return p + n
+
+
+@_jit
+def _uint(d, p, end):
+    """(value, next) of decimal digits at ``p`` (no sign), or (-1, -1)."""
+    if p >= end or not (48 <= d[p] <= 57):
+        return -1, -1
+    if d[p] == 48 and p + 1 < end and 48 <= d[p + 1] <= 57:
+        return -1, -1                         # a leading zero: not the recorder's form
+    v = np.int64(0)
+    n = 0
+    while p < end and 48 <= d[p] <= 57:
+        v = v * 10 + (d[p] - 48)
+        p += 1
+        n += 1
+        if n > 18:
+            return -1, -1
+    return v, p
+
+
+@_jit
+def _bool(d, p, end):
+    """(0/1, next) for ``true``/``false`` at ``p``, or (-1, -1)."""
+    if p + 4 <= end and d[p] == 116 and d[p + 1] == 114 and d[p + 2] == 117 and d[p + 3] == 101:
+        return 1, p + 4
+    if p + 5 <= end and d[p] == 102 and d[p + 1] == 97 and d[p + 2] == 108 and d[p + 3] == 115 and d[p + 4] == 101:
+        return 0, p + 5
+    return -1, -1
+
+
+@_jit
+def _frame(d, p, end, keys, b64, row):
+    """The recorder's frame JSON in ``d[p:end]`` into ``row``; False when it is in another form."""
+    p = _match(d, p, end, keys[0])
+    if p < 0:
+        return False
+    t, p = _uint(d, p, end)
+    if p < 0:
+        return False
+    p = _match(d, p, end, keys[1])
+    if p < 0:
+        return False
+    aid, p = _uint(d, p, end)
+    if p < 0 or aid > 0xFFFFFFFF:
+        return False
+    flags = 0
+    bits = (FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_FD, FLAG_BRS, FLAG_ESI, 0)
+    for k in range(7):                        # the six flags, then is_rx (not kept)
+        p = _match(d, p, end, keys[2 + k])
+        if p < 0:
+            return False
+        v, p = _bool(d, p, end)
+        if p < 0:
+            return False
+        if v:
+            flags |= bits[k]
+    p = _match(d, p, end, keys[9])
+    if p < 0:
+        return False
+    dlc, p = _uint(d, p, end)
+    if p < 0:
+        return False
+    p = _match(d, p, end, keys[10])
+    if p < 0:
+        return False
+    q = p                                     # base64 up to the closing quote
+    while q < end and d[q] != 34:
+        q += 1
+    n64 = q - p
+    if q >= end or n64 % 4 != 0 or n64 > 88:
+        return False
+    pad = 0
+    if n64 and d[q - 1] == 61:
+        pad = 2 if d[q - 2] == 61 else 1
+    length = n64 // 4 * 3 - pad
+    o = 0
+    for g in range(0, n64, 4):
+        acc = 0
+        for k in range(4):
+            c = d[p + g + k]
+            if c == 61:
+                v = 0
+                if g + k < n64 - pad:
+                    return False
+            else:
+                v = b64[c]
+                if v == 255:
+                    return False
+            acc = (acc << 6) | v
+        for k in range(3):
+            if o < length:
+                row["data"][o] = (acc >> (16 - 8 * k)) & 0xFF
+                o += 1
+    for k in range(length, 64):
+        row["data"][k] = 0
+    p = _match(d, q, end, keys[11])
+    if p < 0:
+        return False
+    # channel: null, an integer or a plain string; then the closing brace
+    if p < end and d[p] == 34:
+        p += 1
+        while p < end and d[p] != 34:
+            if d[p] == 92:                    # an escape: not the recorder's plain form
+                return False
+            p += 1
+        p += 1
+    elif p + 4 <= end and d[p] == 110 and d[p + 1] == 117 and d[p + 2] == 108 and d[p + 3] == 108:
+        p += 4
+    else:
+        if p < end and d[p] == 45:
+            p += 1
+        v, p = _uint(d, p, end)
+        if p < 0:
+            return False
+    if p + 1 != end or d[p] != 125:
+        return False
+    row["t_ns"] = t
+    row["can_id"] = aid
+    row["flags"] = flags
+    row["dlc"] = dlc if dlc <= 255 else 255
+    row["length"] = length
+    return True
+
+
+@_jit
+def _walk(d, bus_of, start_ns, end_ns, keys, b64, rows, log_ns, slow_at, slow_off, slow_len):
+    """Every message record of the wanted channels (``bus_of[channel] >= 0``) in the chunk bytes
+    ``d`` whose log time is in ``[start_ns, end_ns)``: a row each, or a slow-path slot (records in
+    another form). Returns (rows written, slow records, error): error 1 = a record runs past the
+    chunk."""
+    n = 0
+    ns = 0
+    p = 0
+    end = d.shape[0]
+    while p < end:
+        if p + 9 > end:
+            return n, ns, 1
+        op = d[p]
+        length = np.int64(0)
+        for k in range(8):
+            length |= np.int64(d[p + 1 + k]) << (8 * k)
+        body = p + 9
+        p = body + length
+        if length < 0 or p > end:
+            return n, ns, 1
+        if op != _OP_MESSAGE or length < 22:
+            continue
+        ch = np.int64(d[body]) | (np.int64(d[body + 1]) << 8)
+        if ch >= bus_of.shape[0] or bus_of[ch] < 0:
+            continue
+        t = np.int64(0)
+        for k in range(8):
+            t |= np.int64(d[body + 6 + k]) << (8 * k)
+        if t < start_ns or t >= end_ns:
+            continue
+        if n + ns >= rows.shape[0]:
+            return n, ns, 2                   # the caller's buffers are too small (never: sized by the chunk)
+        r = rows[n + ns]
+        if _frame(d, body + 22, p, keys, b64, r):
+            r["bus"] = bus_of[ch]
+            log_ns[n + ns] = t
+            n += 1
+        else:
+            slow_at[ns] = n + ns              # its place in the output
+            slow_off[ns] = body + 22
+            slow_len[ns] = p - body - 22
+            log_ns[n + ns] = t
+            rows[n + ns]["bus"] = bus_of[ch]
+            ns += 1
+    return n, ns, 0
+
+
+def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: int | None = None,
+                can_ids=None) -> Iterator[FrameChunk] | None:
+    """The raw frames of ``buses`` (``bus`` = index into it), chunk by chunk in file order; None
+    when the log has no usable summary (read it with :func:`gateway.replay.iter_can_frames`)."""
+    from gateway.mcaplog import McapFileError
+    from gateway.recorder import CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, can_frame_from_record
+
+    path = Path(path)
+    try:
+        summary = read_summary(path)
+    except (OSError, struct.error, ValueError):
+        return None
+    if summary is None or not summary.chunks:
+        return None
+    schemas, channels, chunks = summary.schemas, summary.channels, summary.chunks
+    want = {CAN_TOPIC_PREFIX + b: i for i, b in enumerate(buses)}
+    bus_of = np.full(max([0, *channels]) + 1, -1, dtype=np.int64)
+    for cid, (topic, sid) in channels.items():
+        if topic in want and schemas.get(sid) == CAN_SCHEMA_NAME:
+            bus_of[cid] = want[topic]
+    ids = None if can_ids is None else np.array(sorted(set(can_ids)), dtype=np.int64)
+    lo = -(1 << 63) if start_ns is None else start_ns
+    hi = (1 << 63) - 1 if end_ns is None else end_ns
+    keys = tuple(np.frombuffer(k, dtype=np.uint8).copy() for k in _KEYS)
+    chunks = sorted(chunks, key=lambda c: c.offset)
+
+    def corrupt(why) -> McapFileError:
+        return McapFileError(f"{path}: corrupt data ({why}); `bsc recover {path}` copies everything that is intact")
+
+    def gen():
+        import zstandard
+
+        dec = zstandard.ZstdDecompressor()
+        with open(path, "rb") as f:
+            cap = 0
+            for ci in chunks:
+                if ci.end_ns < lo or ci.start_ns >= hi:
+                    continue
+                if not any(bus_of[c] >= 0 for c in ci.channels if c < len(bus_of)):
+                    continue
+                f.seek(ci.offset)
+                head = f.read(9)
+                if len(head) < 9 or head[0] != _OP_CHUNK:
+                    raise corrupt(f"no chunk record at offset {ci.offset}")
+                body = f.read(struct.unpack_from("<Q", head, 1)[0])
+                _, _, size, crc, clen = _CHUNK_FIXED.unpack_from(body, 0)
+                comp = body[32:32 + clen].decode("ascii", "replace")
+                (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
+                raw = body[40 + clen:40 + clen + dlen]
+                try:
+                    data = dec.decompress(raw, max_output_size=size) if comp == "zstd" else (
+                        raw if comp == "" else None)
+                except zstandard.ZstdError as exc:
+                    raise corrupt(exc) from None
+                if data is None:
+                    raise corrupt(f"chunk compression {comp!r} is not supported")
+                if len(data) != size or (crc and zlib.crc32(data) != crc):
+                    raise corrupt("chunk CRC or size mismatch")
+                d = np.frombuffer(data, dtype=np.uint8)
+                if size // 31 + 1 > cap:                      # at most one message per 31 bytes
+                    cap = size // 31 + 1
+                    buf_rows = np.zeros(cap, dtype=FRAME_DTYPE)
+                    buf_log = np.zeros(cap, dtype=np.int64)
+                    slow_at = np.zeros(cap, dtype=np.int64)
+                    slow_off = np.zeros(cap, dtype=np.int64)
+                    slow_len = np.zeros(cap, dtype=np.int64)
+                rows, log = buf_rows, buf_log
+                n, ns, err = _walk(d, bus_of, lo, hi, keys, _B64, rows, log, slow_at, slow_off, slow_len)
+                if err:
+                    raise corrupt("a record runs past the end of its chunk")
+                total = n + ns
+                for k in range(ns):                           # another writer's form: json, in place
+                    at, o, ln = int(slow_at[k]), int(slow_off[k]), int(slow_len[k])
+                    try:
+                        rec = json.loads(data[o:o + ln])
+                        msg = can_frame_from_record(rec)
+                    except (ValueError, KeyError, TypeError) as exc:
+                        raise McapFileError(f"{path}: {CAN_TOPIC_PREFIX}{buses[rows[at]['bus']]}: a frame record "
+                                            f"is malformed ({exc!r})") from None
+                    from drivers.kernel import columns_from_messages
+
+                    one = columns_from_messages([(int(rows[at]["bus"]), msg)])[0]
+                    one["t_ns"] = rec["t_ns"]
+                    rows[at] = one
+                rows, log = rows[:total].copy(), log[:total].copy()
+                if ids is not None and total:
+                    keep = np.isin(rows["can_id"].astype(np.int64), ids)
+                    rows, log = rows[keep], log[keep]
+                if len(rows):
+                    yield FrameChunk(rows, log)
+
+    return gen()
