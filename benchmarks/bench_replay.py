@@ -1,20 +1,20 @@
 """Offline replay speed: simulated seconds of log replayed per wall second (x real time).
 
 Run: ``python -m benchmarks.bench_replay [--seconds S] [--log FILE]``. Target: >= 100x real
-time for a recorded default ``bsc demo`` session.
+time for a recorded default ``bsc demo`` session, with efforts byte-identical to live.
 
 Without ``--log`` a session is made first: the default scenario in the simulator for
 ``--seconds`` s, its sensor firmware's CAN frames (``simulator.firmware``) recorded the way the
 live gateway does it (record the frame, feed it to ``gateway.pipeline.Pipeline``, record every
-emit). Then ``gateway.replay.replay_offline`` replays it into a temporary directory, and three
-figures come from the same file:
+emit). The kernels are compiled (or loaded from numba's cache) first and that time is reported
+on its own. Then, from the same file, what ``bsc replay`` runs:
 
-- read: the reader alone (frames in recording order, rebuilt as python-can Messages);
-- read + pipeline: frames fed to a fresh pipeline, emits discarded;
-- full: ``replay_offline`` (read, pipeline, record every emit, report).
+- read: the chunks read into frame rows (``gateway.engine.sources.mcap_frames``);
+- read + drivers + estimator: those rows through a session, output discarded;
+- full: ``replay_offline`` (read, drivers, estimator, write efforts and health, report), the
+  median of three runs; and the same with ``samples=True`` (every decoded sample written too).
 
-If ``gateway.pipeline`` does not exist yet, the full figures are replaced by a drivers-only
-stand-in (labelled so): the ceiling the replay engine itself allows.
+The replayed efforts are compared byte for byte with the ones recorded live.
 """
 from __future__ import annotations
 
@@ -28,46 +28,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-class DriversOnly:
-    """Stand-in pipeline: the real drivers, no estimator (engine ceiling, not the target)."""
-
-    def __init__(self, robot, *, model_robot=None, fd=False, emit, layout=None, **_pipeline_options):
-        from drivers.devices import listeners_for
-        from drivers.wire import WireMap
-        from gateway import keys
-
-        wm = WireMap.from_robot(robot)
-        self.buses = list(wm.buses)
-        self.name = name = robot.name
-        self.log_ns = 0
-        self.stats: dict = {}
-        sink = lambda s: emit(keys.for_sample(name, s), s)  # noqa: E731
-        self._ls = {}
-        for b, spec in wm.buses.items():
-            mon, drivers = listeners_for(spec, sink, fd)
-            self._ls[b] = [mon, *drivers]
-
-    def feed(self, bus, msg, log_ns=None):
-        for listener in self._ls[bus]:
-            listener.on_message_received(msg)
-
-    def flush(self):
-        pass
-
-    def health(self, now_ns):
-        out = []
-        for ls in self._ls.values():
-            out.append(ls[0].health(now_ns))
-            for d in ls[1:]:
-                out.extend(d.health(now_ns))
-        return out
-
-
 def pipeline_class():
-    try:
-        from gateway.pipeline import Pipeline
-    except ImportError:
-        return None
+    from gateway.pipeline import Pipeline
+
     return Pipeline
 
 
@@ -153,44 +116,71 @@ def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
     return n, time.perf_counter() - t0
 
 
-def measure(seconds: float = 5.0, log: Path | None = None, say=print) -> dict:
-    """Make (or take) a session, then time read, read + pipeline and the full offline replay."""
-    from gateway.replay import iter_can_frames, read_context, replay_offline, resolve_robot
+def _efforts(path: Path) -> list[tuple[str, bytes]]:
+    from gateway.replay import iter_file_order
 
-    real = pipeline_class()
-    if real is None:
-        say("bench_replay: needs gateway.pipeline (the drivers + estimator core) for the "
-            "target figure; it does not exist yet. Measuring the replay engine with a "
-            "drivers-only stand-in instead (NOT the target figure).")
-    pipeline_cls = real or DriversOnly
-    label = "real pipeline" if real else "drivers-only stand-in"
-    out = {"label": label, "real": real is not None, "seconds": seconds}
+    return [(t, bytes(m.data)) for t, _, m in iter_file_order(path, lambda t, s: "/efforts/" in t)]
+
+
+def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: int = 3) -> dict:
+    """Make (or take) a session; compile or load the kernels (timed on their own); then time what
+    ``bsc replay`` runs: reading the chunks into frame rows, those rows through a session
+    (drivers + estimator, output discarded), and the whole offline replay (median of
+    ``repeats``), with and without the decoded samples. Checks that the replayed efforts are
+    byte-identical to the ones recorded live."""
+    import statistics
+
+    from gateway.engine import Session
+    from gateway.engine.sources import mcap_frames
+    from gateway.engine.warm import warm
+    from gateway.replay import OUTPUT_NAME, read_context, replay_offline, resolve_robot
+
+    out = {"label": "real pipeline", "real": True, "seconds": seconds}
+    t0 = time.perf_counter()
+    warm()
+    out["t_kernels"] = time.perf_counter() - t0
+    say(f"kernels compiled or loaded from numba's cache in {out['t_kernels']:.1f} s (not in the figures below)")
     with tempfile.TemporaryDirectory(prefix="bsc-bench-replay-") as tmp:
         tmp = Path(tmp)
         if log is None:
             log = tmp / "session.mcap"
-            n, wall = make_session(log, seconds, pipeline_cls)
+            n, wall = make_session(log, seconds, pipeline_class())
             out.update(made_frames=n, made_wall=wall, made_bytes=log.stat().st_size)
             say(f"session: {seconds:g} s simulated, {n} frames, recorded live in "
                 f"{wall:.1f} s ({log.stat().st_size / 1e6:.1f} MB)")
         ctx = read_context(log)
         span = (ctx.end_ns - ctx.start_ns) / 1e9 if ctx.start_ns is not None else 0.0
-
-        t0 = time.perf_counter()
-        frames = sum(1 for _ in iter_can_frames(log))
-        t_read = time.perf_counter() - t0
-
         robot = resolve_robot(ctx)
-        pipe = pipeline_cls(robot, emit=lambda k, o: None)
+
+        with Session(robot) as probe:
+            buses = list(probe.buses)
         t0 = time.perf_counter()
-        for bus, _, msg in iter_can_frames(log):
-            pipe.feed(bus, msg)
+        chunks = list(mcap_frames(log, buses) or ())
+        t_read = time.perf_counter() - t0
+        frames = sum(len(c.frames) for c in chunks)
+        if not chunks:
+            raise SystemExit(f"bench_replay: {log} has no chunk index; run bsc recover on it first")
+
+        t0 = time.perf_counter()
+        with Session(robot, samples=False) as ses:
+            for c in chunks:
+                ses.feed_frames(c.frames, c.log_ns)
         t_feed = time.perf_counter() - t0
 
-        report = replay_offline(log, tmp / "out", pipeline_factory=pipeline_cls)
-    out.update(span=span, frames=frames, t_read=t_read, t_feed=t_feed, t_full=report.wall_s,
-               x_full=report.speed_x_realtime, samples=report.samples, efforts=report.efforts,
-               health=report.health_reports, dropped=report.recorder["dropped"])
+        runs = {}
+        for samples in (False, True):
+            walls = []
+            for k in range(repeats):
+                report = replay_offline(log, tmp / f"out{k}", samples=samples, overwrite=True)
+                walls.append(report.wall_s)
+            runs[samples] = (statistics.median(walls), report)
+        identical = _efforts(tmp / "out0" / OUTPUT_NAME) == _efforts(log)
+        t_full, report = runs[False]
+        t_samples, report_s = runs[True]
+    out.update(span=span, frames=frames, t_read=t_read, t_feed=t_feed, t_full=t_full,
+               x_full=span / t_full, t_samples=t_samples, x_samples=span / t_samples,
+               samples=report_s.samples, efforts=report.efforts, health=report.health_reports,
+               dropped=report.recorder["dropped"] + report_s.recorder["dropped"], identical=identical)
     return out
 
 
@@ -203,20 +193,20 @@ def figures(quick: bool = False) -> list[dict]:
     from benchmarks.anchors import ratio, row
 
     m = measure(2.0 if quick else 5.0, say=lambda *_: None)
-    label = m["label"]
-    stand_in = "" if m["real"] else " (drivers-only stand-in, NOT the target figure)"
-    rows = [row(f"full offline replay ({label})", m["x_full"], "x real time",
-                target=">= 100x", ok=(m["x_full"] >= TARGET_X) if m["real"] else None,
-                note=f"{m['span']:.2f} s log of the default scenario, {m['frames']} frames; "
-                     f"{m['samples']} samples, {m['efforts']} efforts, dropped {m['dropped']}"
-                     + stand_in)]
-    for name, t in (("replay: MCAP read alone", m["t_read"]),
-                    (f"replay: read + {label}", m["t_feed"]),
-                    (f"replay: full ({label})", m["t_full"])):
+    same = "efforts byte-identical to live" if m["identical"] else "EFFORTS DIFFER FROM LIVE"
+    rows = [row("full offline replay (efforts + health)", m["x_full"], "x real time",
+                target=">= 100x", ok=m["x_full"] >= TARGET_X and m["identical"],
+                note=f"{m['span']:.2f} s log of the default scenario, {m['frames']} frames; {m['efforts']} "
+                     f"efforts, dropped {m['dropped']}; {same}; kernels {m['t_kernels']:.1f} s before"),
+            row("full offline replay, with --samples", m["x_samples"], "x real time",
+                note=f"{m['samples']} samples as well")]
+    for name, t in (("replay: read chunks into frame rows", m["t_read"]),
+                    ("replay: read + drivers + estimator", m["t_read"] + m["t_feed"]),
+                    ("replay: full (efforts + health)", m["t_full"])):
         rate = m["frames"] / t
         rows.append(row(name, rate, "frames/s", anchor="cantools_decode",
                         ratio=ratio(rate, "cantools_decode"),
-                        note=f"{m['span'] / t:.2f}x real time"))
+                        note=f"{m['span'] / t:.1f}x real time"))
     return rows
 
 
@@ -227,16 +217,17 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     m = measure(args.seconds, args.log)
-    label, frames, span = m["label"], m["frames"], m["span"]
+    frames, span = m["frames"], m["span"]
     print(f"log: {span:.2f} s, {frames} frames ({frames / span:.0f} frames/s of log)")
-    print(f"{'stage':<28} {'wall s':>8} {'frames/s':>10} {'x real time':>12}")
-    for name, t in (("read", m["t_read"]), (f"read + {label}", m["t_feed"]),
-                    (f"full replay ({label})", m["t_full"])):
-        print(f"{name:<28} {t:>8.2f} {frames / t:>10.0f} {span / t:>12.1f}")
-    print(f"full replay: {m['samples']} samples, {m['efforts']} efforts, "
-          f"{m['health']} health, dropped {m['dropped']}")
-    print(f"target >= 100x real time: {'met' if m['x_full'] >= TARGET_X else 'MISSED'}"
-          + ("" if m["real"] else " (stand-in, not the target figure)"))
+    print(f"{'stage':<36} {'wall s':>8} {'frames/s':>10} {'x real time':>12}")
+    for name, t in (("read chunks into frame rows", m["t_read"]),
+                    ("read + drivers + estimator", m["t_read"] + m["t_feed"]),
+                    ("full replay (efforts + health)", m["t_full"]),
+                    ("full replay with --samples", m["t_samples"])):
+        print(f"{name:<36} {t:>8.3f} {frames / t:>10.0f} {span / t:>12.1f}")
+    print(f"full replay: {m['efforts']} efforts, {m['health']} health ({m['samples']} samples with --samples), "
+          f"dropped {m['dropped']}; efforts byte-identical to live: {'yes' if m['identical'] else 'NO'}")
+    print(f"target >= 100x real time: {'met' if m['x_full'] >= TARGET_X and m['identical'] else 'MISSED'}")
     return 0
 
 
