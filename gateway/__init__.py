@@ -1,2 +1,9 @@
 """The zenoh side of bsc: samples -> estimator -> efforts; monitor -> alerts; recorder -> MCAP."""
 __version__ = "0.1.0"
+
+# The arithmetic of the compiled kernels that turn frames into samples and efforts
+# (drivers/kernel.py, gateway/estimator/core.py, chain_kernel.py, thruster_kernel.py). Bump it with
+# any change that alters a bit of a published sample or effort: every recorded session carries it
+# (metadata bsc.session "kernels"), and `bsc replay --check` says when a log's efforts came from
+# other kernels.
+KERNELS = "1"

@@ -660,9 +660,12 @@ class Recorder:
         """Attach what makes a log self-contained, under the documented names.
 
         ``robot.urdf``, ``dbc/<name>`` and ``scenario.toml`` attachments; ``zenoh.keys``
-        metadata (key name -> key expression); ``bsc.session`` metadata (software version and
+        metadata (key name -> key expression); ``bsc.session`` metadata (software version, the
+        version of the kernels that compute samples and efforts, :data:`gateway.KERNELS`, and
         ``extra``).
         """
+        from gateway import KERNELS
+
         if urdf_text is not None:
             self.add_attachment(URDF_ATTACHMENT, "application/xml", urdf_text.encode())
         for name, text in (dbc_files or {}).items():
@@ -672,11 +675,10 @@ class Recorder:
             self.add_attachment(SCENARIO_ATTACHMENT, "application/toml", scenario_text.encode())
         if zenoh_keys:
             self.add_metadata(ZENOH_KEYS_METADATA, dict(zenoh_keys))
-        session = dict(extra or {})
+        session = {"kernels": KERNELS, **(extra or {})}
         if software is not None:
             session["software"] = software
-        if session:
-            self.add_metadata(SESSION_METADATA, session)
+        self.add_metadata(SESSION_METADATA, session)
 
     def flush(self, timeout: float | None = None) -> bool:
         """Write everything queued so far into the file (finishing the open chunk); wait.

@@ -570,9 +570,124 @@ class OfflineReport:
     speed_x_realtime: float = 0.0
     frames_per_s: float = 0.0
     recorder: dict[str, Any] = dataclasses.field(default_factory=dict)
+    check: dict[str, Any] | None = None          # check=True: EffortCheck.to_json()
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+CHECK_RTOL = 1e-9
+
+
+@dataclasses.dataclass(slots=True)
+class EffortCheck:
+    """The replayed efforts against the ones the log recorded (:func:`compare_efforts`).
+
+    ``identical``: byte for byte; ``close``: not, but every number within :data:`CHECK_RTOL`
+    relative (of the larger magnitude; 1e-12 absolute near zero) and everything else equal;
+    ``differ``: the rest, and efforts only one side has. The same kernels (:data:`gateway.KERNELS`)
+    must give identical bytes; a log from other kernels may be ``close``."""
+
+    recorded: int = 0
+    replayed: int = 0
+    identical: int = 0
+    close: int = 0
+    differ: int = 0
+    first_difference: str | None = None
+    kernels_recorded: str | None = None
+    kernels_now: str = ""
+
+    @property
+    def same_kernels(self) -> bool:
+        return self.kernels_recorded == self.kernels_now
+
+    @property
+    def ok(self) -> bool:
+        return self.differ == 0 and self.recorded == self.replayed and (self.close == 0 or not self.same_kernels)
+
+    def summary(self) -> str:
+        """One line for the user."""
+        rec = ("unrecorded (a log from before kernel versions were recorded)" if self.kernels_recorded is None
+               else f"v{self.kernels_recorded}")
+        if self.recorded == 0:
+            return "the log holds no efforts to compare with"
+        if self.ok and self.identical == self.recorded:
+            return f"all {self.recorded} efforts byte-identical to the log's (kernels v{self.kernels_now})"
+        if self.ok:
+            return (f"the log's efforts came from kernels {rec}, these are v{self.kernels_now}: "
+                    f"{self.identical} byte-identical, {self.close} within {CHECK_RTOL:g} relative, none beyond")
+        why = [f"{self.differ} beyond {CHECK_RTOL:g} relative"] if self.differ else []
+        if self.close and self.same_kernels:
+            why.append(f"{self.close} not byte-identical although the kernels are the same (v{self.kernels_now})")
+        if self.recorded != self.replayed:
+            why.append(f"{self.recorded} recorded, {self.replayed} replayed")
+        return (f"efforts DIFFER from the log's (kernels {rec}, now v{self.kernels_now}): " + "; ".join(why)
+                + (f"; first: {self.first_difference}" if self.first_difference else ""))
+
+    def to_json(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d.update(ok=self.ok, summary=self.summary())
+        return d
+
+
+def _near(a, b, path: str = "") -> str | None:
+    """None when ``a`` and ``b`` (parsed JSON) agree within CHECK_RTOL, else where they do not."""
+    if isinstance(a, bool) or isinstance(b, bool) or not isinstance(a, (int, float)) or not isinstance(b, (int, float)):
+        if isinstance(a, dict) and isinstance(b, dict):
+            if a.keys() != b.keys():
+                return f"{path or 'the message'}: fields {sorted(a)} vs {sorted(b)}"
+            for k in a:
+                why = _near(a[k], b[k], f"{path}.{k}" if path else k)
+                if why:
+                    return why
+            return None
+        if isinstance(a, list) and isinstance(b, list):
+            if len(a) != len(b):
+                return f"{path}: {len(a)} vs {len(b)} values"
+            for i, (x, y) in enumerate(zip(a, b)):
+                why = _near(x, y, f"{path}[{i}]")
+                if why:
+                    return why
+            return None
+        return None if a == b else f"{path}: {a!r} vs {b!r}"
+    if a == b or abs(a - b) <= max(CHECK_RTOL * max(abs(a), abs(b)), 1e-12):
+        return None
+    return f"{path}: {a!r} recorded, {b!r} replayed"
+
+
+def compare_efforts(recorded: str | os.PathLike[str], replayed: str | os.PathLike[str]) -> EffortCheck:
+    """Every effort message of ``replayed`` against ``recorded``'s, topic by topic in file order."""
+    from gateway import KERNELS
+
+    def efforts(p):
+        out: dict[str, list] = {}
+        for topic, _, m in iter_file_order(p, lambda t, s: "/efforts/" in t):
+            out.setdefault(topic, []).append((m.log_time, bytes(m.data)))
+        return out
+
+    ctx = read_context(recorded)
+    check = EffortCheck(kernels_recorded=ctx.metadata.get(SESSION_METADATA, {}).get("kernels"), kernels_now=KERNELS)
+    old, new = efforts(recorded), efforts(replayed)
+    for topic in sorted(set(old) | set(new)):
+        a, b = old.get(topic, []), new.get(topic, [])
+        check.recorded += len(a)
+        check.replayed += len(b)
+        for (t, x), (_, y) in zip(a, b):
+            if x == y:
+                check.identical += 1
+                continue
+            why = _near(json.loads(x), json.loads(y))
+            if why is None:
+                check.close += 1
+            else:
+                check.differ += 1
+                if check.first_difference is None:
+                    check.first_difference = f"{topic} at log time {t} ns, {why}"
+        extra = abs(len(a) - len(b))
+        check.differ += extra
+        if extra and check.first_difference is None:
+            check.first_difference = f"{topic}: {len(a)} recorded, {len(b)} replayed"
+    return check
 
 
 def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str], *,
@@ -580,6 +695,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                    start_s: float | None = None, duration_s: float | None = None,
                    can_ids: Iterable[int] | None = None, topics: Iterable[str] | None = None,
                    copy_can: bool = False, overwrite: bool = False, samples: bool = False,
+                   check: bool = False,
                    pipeline_factory: Callable[..., Any] | None = None,
                    progress: bool = False, warn: Warn = _no_warn) -> OfflineReport:
     """Feed the raw frames of ``path`` through a fresh pipeline; write ``OUT/replay.mcap`` and
@@ -592,10 +708,14 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     ``robot`` overrides the log's URDF (``model`` the estimator's belief, default the same).
     ``copy_can`` also copies the replayed raw frames, making the output replayable itself;
     ``samples`` also records every decoded sample (by default the output holds the efforts and the
-    health).
+    health). ``check`` compares the replayed efforts with the ones the log recorded
+    (:func:`compare_efforts`; the report's ``check``): it needs the whole log, with its own robot.
     ``topics`` (globs over ``/can/<bus>``) and ``can_ids`` select frames; ``start_s`` and
     ``duration_s`` a window relative to the log's first message.
     """
+    if check and any(x is not None for x in (robot, model, start_s, duration_s, can_ids, topics)):
+        raise ReplayError("--check compares with the efforts the log recorded: replay the whole log with its own "
+                          "robot (no --robot, --model, --start, --duration, --can-id or --topic)")
     from drivers.samples import BusHealth, DeviceHealth
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
@@ -760,6 +880,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             frames_per_s=frames / wall if wall > 0 else 0.0,
             recorder=dataclasses.asdict(rec.stats) | {"dropped": rec.stats.dropped,
                                                       "files": [str(p) for p in rec.paths]})
+    if check:
+        report.check = compare_efforts(src, out_path).to_json()
     tmp = report_path.with_name(f".{report_path.name}.tmp")
     tmp.write_text(json.dumps(report.to_json(), indent=1) + "\n")
     os.replace(tmp, report_path)

@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="copy the raw frames into the output (a replayable output)")
     off.add_argument("--samples", action="store_true",
                      help="also record every decoded sample (default: efforts and health only)")
+    off.add_argument("--check", action="store_true",
+                     help="compare the replayed efforts with the ones the log recorded: exit 3 when any differs "
+                          "beyond 1e-9 relative, or differs at all while the log's kernels are these")
     off.add_argument("--force", action="store_true", help="replace DIR/replay.mcap, report.json")
     zen = parser.add_argument_group("zenoh playback")
     zen.add_argument("--wait", type=float, default=0.0, metavar="S",
@@ -113,7 +116,7 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
                        fd=True if args.fd else None, start_s=args.start,
                        duration_s=args.duration, can_ids=can_ids, topics=args.topic or None,
                        copy_can=args.copy_can, overwrite=args.force, samples=args.samples,
-                       progress=not args.quiet, warn=_warn)
+                       check=args.check, progress=not args.quiet, warn=_warn)
     print(f"bsc replay: {r.frames_in} frames, {r.log_duration_s:.3f} s of log in "
           f"{r.wall_s:.2f} s ({r.speed_x_realtime:.1f}x real time, {r.frames_per_s:.0f} frames/s)")
     print(f"bsc replay: {r.samples} samples, {r.efforts} efforts ({r.good_efforts} good), "
@@ -126,6 +129,12 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
     if dropped:
         print(f"bsc replay: warning: {dropped} messages not written")
     print(f"bsc replay: wrote {r.output} and {r.output.rsplit('/', 1)[0]}/report.json")
+    if r.check is not None:
+        print(f"bsc replay: check: {r.check['summary']}")
+        if not r.check["ok"]:
+            from gateway.cli import EXIT_TARGETS_MISSED
+
+            return EXIT_TARGETS_MISSED
     return 0
 
 

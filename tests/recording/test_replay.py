@@ -7,6 +7,8 @@ sample). The same determinism test runs against the real pipeline when it exists
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import random
 import struct
@@ -294,6 +296,74 @@ def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(
         return [(t, m.log_time, bytes(m.data)) for t, _, m in rp.iter_file_order(p, lambda t, s: t.startswith("/can/"))]
 
     assert frames(out) == frames(path) and len(frames(path)) == full.frames_in
+
+
+def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40):
+    """A live-recorded log (real pipeline) whose ``at``-th JointEfforts has its first full torque
+    scaled by ``1 + nudge``, and whose session metadata names ``kernels`` (default: these)."""
+    from gateway.pipeline import Pipeline
+
+    frame_list = synthetic_frames(robot, 200, seed=5)
+    seen = [0]
+    with Recorder(path, queue_size=1 << 22) as rec:
+        extra = {"kernels": kernels} if kernels is not None else {}
+        rec.add_session_context(**rp.session_context(robot, extra=extra))
+
+        def emit(key, obj):
+            if isinstance(obj, JointEfforts):
+                seen[0] += 1
+                if seen[0] == at and nudge:
+                    obj = dataclasses.replace(obj, full_nm=(obj.full_nm[0] * (1 + nudge), *obj.full_nm[1:]))
+            assert rec.record(key, obj)
+
+        pipe = Pipeline(robot, emit=emit)
+        for bus, msg in frame_list:
+            assert rec.record_can(bus, msg)
+            pipe.feed(bus, msg)
+        pipe.flush()
+    assert seen[0] > at
+    return path
+
+
+def test_check_finds_the_replay_identical_to_live(robot, tmp_path, capsys):
+    from gateway import KERNELS
+    from gateway.cli import main
+
+    log = _live_log(tmp_path / "live.mcap", robot)
+    assert rp.read_context(log).metadata["bsc.session"]["kernels"] == KERNELS
+    assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"check: all {efforts_count(log)} efforts byte-identical to the log's (kernels v{KERNELS})" in out
+    report = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())["check"]
+    assert report["ok"] and report["identical"] == report["recorded"] == report["replayed"] > 100
+
+
+def efforts_count(path):
+    return sum(len(v) for v in efforts_by_topic(path).values())
+
+
+@pytest.mark.parametrize("kernels, nudge, status, says", [
+    ("0", 1e-12, 0, "came from kernels v0, these are v1: {n} byte-identical, 1 within 1e-09 relative, none beyond"),
+    (None, 1e-12, 3, "1 not byte-identical although the kernels are the same"),
+    ("0", 1e-6, 3, "efforts DIFFER from the log's (kernels v0, now v1): 1 beyond 1e-09 relative; first: "
+                   "bsc/paper_robot/efforts/joints/arm"),
+])
+def test_check_of_a_log_from_other_kernels(robot, tmp_path, capsys, kernels, nudge, status, says):
+    """A log from older kernels is compared within 1e-9 relative, with a note and no failure;
+    beyond that, or any difference under the same kernels, is exit 3 naming the first."""
+    from gateway.cli import main
+
+    log = _live_log(tmp_path / "live.mcap", robot, kernels=kernels, nudge=nudge)
+    assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == status
+    out = capsys.readouterr().out
+    assert says.format(n=efforts_count(log) - 1) in out, out
+
+
+def test_check_needs_the_whole_log_with_its_own_robot(session, tmp_path, capsys):
+    from gateway.cli import main
+
+    assert main(["replay", str(session[0]), "--out", str(tmp_path / "out"), "--check", "--start", "0.1"]) == 2
+    assert "--check compares with the efforts the log recorded" in capsys.readouterr().err
 
 
 def test_offline_cli_filters_and_report(session, tmp_path, capsys, standin):
