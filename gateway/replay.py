@@ -720,7 +720,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
     from gateway.engine.sinks import RecorderSink
-    from gateway.engine.sources import mcap_frames
+    from gateway.engine.sources import mcap_frames, read_ahead
     from gateway.recorder import Recorder
 
     import robot_description
@@ -825,6 +825,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             chunks = None if copy_can else mcap_frames(src, buses, start_ns=start_ns, end_ns=end_ns,
                                                        can_ids=can_ids)
             if chunks is not None:
+                chunks = read_ahead(chunks)
                 to_session = np.array([ses.buses.index(b) if b in known else -1 for b in buses], dtype=np.int64)
                 for chunk in chunks:
                     idx = to_session[chunk.frames["bus"]]

@@ -393,3 +393,53 @@ def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: 
                     yield FrameChunk(rows, log)
 
     return gen()
+
+
+def read_ahead(chunks: Iterator[FrameChunk], depth: int = 8) -> Iterator[FrameChunk]:
+    """``chunks`` read by a thread of their own, up to ``depth`` ahead of the consumer: reading
+    (zstd, the chunk walk) releases the GIL, and so do the drivers' and estimator's kernels, so on
+    two cores the next chunks are read while this one is estimated. Same chunks, same order; an
+    error in the reader is raised here, where the consumer would have met it."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        try:
+            for c in chunks:
+                if not put(c):
+                    return
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
+            put(exc)
+            return
+        put(end)
+
+    t = threading.Thread(target=run, name="bsc-read-ahead", daemon=True)
+    t.start()
+    try:
+        while True:
+            item = q.get()
+            if item is end:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        t.join(5.0)
+        close = getattr(chunks, "close", None)
+        if close is not None and not t.is_alive():
+            close()
+

@@ -59,7 +59,7 @@ _EPS = float(np.finfo(np.float64).eps)
 _MAX_SWEEPS = 60          # one-sided Jacobi converges quadratically: 4-7 sweeps for 6 columns
 
 # IEEE semantics (division by zero gives inf, no check); no fast-math: the bits are fixed
-_jit = njit(cache=True, fastmath=False, error_model="numpy")
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 # layout of ChainArrays.link[j, i]: one link of arm j, internal frames (axis +z)
 _LINK = 25                # C (9, row-major) | t (3) | m | h = m c (3) | Io (9, row-major)

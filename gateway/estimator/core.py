@@ -45,8 +45,8 @@ from . import thruster_kernel as tk
 from .model import EstimatorModel
 from .thrusters import ThrusterFilterSettings
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy")
-_inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+_inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always", nogil=True)
 
 # sample kinds and rows: the compiled drivers' events (drivers/kernel.py EVENT_DTYPE)
 WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = (kernel.WRENCH, kernel.JOINT, kernel.TORQUE, kernel.IMU,

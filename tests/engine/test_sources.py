@@ -93,3 +93,30 @@ def test_no_summary_means_the_slow_reader(log, tmp_path):
     cut.write_bytes(log.read_bytes()[:len(log.read_bytes()) // 2])
     assert mcap_frames(cut, ["arm0"]) is None
     assert json                                # (the slow path parses with json)
+
+
+def test_read_ahead_gives_the_same_chunks_and_the_reader_errors(log, tmp_path):
+    import threading
+
+    from gateway.engine.sources import read_ahead
+
+    buses = ["arm0", "arm1", "spacecraft"]
+    want = list(mcap_frames(log, buses))
+    got = list(read_ahead(mcap_frames(log, buses), depth=2))
+    assert len(got) == len(want) > 3
+    assert all(a.frames.tobytes() == b.frames.tobytes() and np.array_equal(a.log_ns, b.log_ns)
+               for a, b in zip(got, want))
+
+    def failing():
+        yield want[0]
+        raise McapFileError("broken chunk")
+
+    it = read_ahead(failing())
+    assert next(it) is want[0]
+    with pytest.raises(McapFileError, match="broken chunk"):
+        next(it)
+
+    it = read_ahead(iter(want), depth=1)                 # the consumer stops after one chunk
+    next(it)
+    it.close()                                           # joins the reader thread
+    assert not any(t.name == "bsc-read-ahead" for t in threading.enumerate())
