@@ -889,6 +889,57 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     return report
 
 
+def output_dirs(files: list[Path], out_dir: Path) -> list[Path]:
+    """Where each of several logs replays to: ``out_dir/<stem>`` when the names differ, else
+    the logs' paths below their common folder, without the suffix (``runs/day1/session.mcap``
+    and ``runs/day2/session.mcap`` -> ``out/day1/session``, ``out/day2/session``)."""
+    files = [Path(f).absolute() for f in files]
+    stems = [f.stem for f in files]
+    if len(set(stems)) == len(stems):
+        return [out_dir / s for s in stems]
+    if len(set(files)) != len(files):
+        dup = next(f for f in files if files.count(f) > 1)
+        raise ReplayError(f"{dup} is given twice")
+    common = Path(os.path.commonpath([str(f.parent) for f in files]))
+    return [out_dir / f.relative_to(common).with_suffix("") for f in files]
+
+
+class ReplayOutcome(NamedTuple):
+    """One log of :func:`replay_many`: its report, or the error that stopped it, and the
+    warnings it gave (a truncated log recovered, ...)."""
+
+    source: str
+    output: str
+    report: OfflineReport | None
+    error: str | None
+    warnings: list[str]
+
+
+def _replay_job(job) -> ReplayOutcome:
+    path, out, kwargs = job
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    warnings: list[str] = []
+    try:
+        return ReplayOutcome(path, out, replay_offline(path, out, warn=warnings.append, **kwargs), None, warnings)
+    except (ReplayError, McapFileError, OSError, ValueError) as exc:
+        return ReplayOutcome(path, out, None, str(exc), warnings)
+
+
+def replay_many(files, out_dir, *, workers: int | None = None, progress: bool = False,
+                done: Callable[[int, ReplayOutcome], None] | None = None, **kwargs) -> list[ReplayOutcome]:
+    """:func:`replay_offline` of every log in ``files`` into its own folder of ``out_dir``
+    (:func:`output_dirs`), one session per process on ``workers`` processes (default: every
+    CPU), a progress bar over the logs. A log that cannot be replayed is reported in its
+    outcome and the others go on. Outcomes in the order given; ``done(i, outcome)`` as each ends."""
+    from gateway.parallel import map_jobs
+
+    files = [Path(f) for f in files]
+    outs = output_dirs(files, Path(out_dir))
+    jobs = [(str(f), str(o), kwargs) for f, o in zip(files, outs)]
+    return map_jobs(_replay_job, jobs, workers=workers, progress="replay" if progress else None, unit="log",
+                    done=done)
+
+
 def _rejections(health: list) -> tuple[dict[str, int], dict[str, dict[str, int]]]:
     total: Counter[str] = Counter()
     per: dict[str, dict[str, int]] = {}

@@ -170,31 +170,9 @@ def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
         if existing:
             raise FileExistsError(f"{existing[0]} exists (overwrite=True replaces the series)")
     jobs = [(name, k, sessions, float(duration_s), str(paths[k]), save_truth) for k in range(first, sessions)]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(jobs), unit="session", desc=f"series {name}", leave=False)
-    workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-    try:
-        if workers == 1:
-            for job in jobs:
-                _session_job(job)
-                if bar is not None:
-                    bar.update(1)
-        else:
-            import concurrent.futures as cf
-            import multiprocessing
+    from gateway.parallel import map_jobs
 
-            # forkserver: no inherited threads or sessions from the caller (tests, zenoh)
-            ctx = multiprocessing.get_context("forkserver")
-            with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                for fut in cf.as_completed([pool.submit(_session_job, j) for j in jobs]):
-                    fut.result()
-                    if bar is not None:
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
+    map_jobs(_session_job, jobs, workers=workers, progress=f"series {name}" if progress else None, unit="session")
     truth = {"series": name, "description": spec.description, "sessions": sessions, "onset_session": onset,
              "expected_kind": spec.kind, "expected_target": spec.target, "duration_s": float(duration_s),
              "files": [p.name for p in paths],

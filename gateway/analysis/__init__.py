@@ -46,32 +46,10 @@ def run(paths, *, detectors=None, baseline_sessions: int = 3, workers: int | Non
         progress: bool = False) -> tuple[SeriesResult, list[str]]:
     """Analyse sessions (in parallel processes) and the series; ``(result, skipped reasons)``."""
     files = collect_sessions(paths)
-    workers = max(1, min(workers or os.cpu_count() or 1, len(files)))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(files), unit="session", desc="analyze", leave=False)
-    results: dict[int, object] = {}
-    try:
-        if workers == 1:
-            for i, f in enumerate(files):
-                results[i] = _analyze_one(str(f))
-                if bar is not None:
-                    bar.update(1)
-        else:
-            import concurrent.futures as cf
-            import multiprocessing
+    from gateway.parallel import map_jobs
 
-            ctx = multiprocessing.get_context("forkserver")
-            with cf.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                futs = {pool.submit(_analyze_one, str(f)): i for i, f in enumerate(files)}
-                for fut in cf.as_completed(futs):
-                    results[futs[fut]] = fut.result()
-                    if bar is not None:
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
+    results = map_jobs(_analyze_one, [str(f) for f in files], workers=workers,
+                       progress="analyze" if progress else None, unit="session")
     sessions, skipped = [], []
     for i in range(len(files)):
         r = results[i]

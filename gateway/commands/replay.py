@@ -1,8 +1,9 @@
 """``bsc replay FILE``: run a recorded session again, offline or live.
 
 - ``--out DIR``: offline. The raw CAN frames go through fresh drivers and estimator as fast as
-  possible; ``DIR/replay.mcap`` gets every sample, health report and effort, ``DIR/report.json``
-  the counts, rejections and speed.
+  possible; ``DIR/replay.mcap`` gets every health report and effort (``--samples``: every decoded
+  sample too), ``DIR/report.json`` the counts, rejections and speed. Several logs: each into its
+  own folder of DIR, one session per process (``--workers``), and ``DIR/replays.json``.
 - ``--interface I --channel PREFIX|BUS=CH``: the raw frames go back onto CAN buses (any
   python-can interface) with their recorded timing.
 - ``--zenoh [--connect ...]``: the recorded samples and efforts are republished on their keys
@@ -19,7 +20,8 @@ import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="MCAP log written by bsc record / the gateway")
+    parser.add_argument("file", nargs="+", help="MCAP log written by bsc record / the gateway; offline "
+                        "(--out) takes any number: each replays into its own folder of DIR, one per process")
     mode = parser.add_argument_group("mode (exactly one)")
     mode.add_argument("--out", "-o", metavar="DIR",
                       help="offline: replay through drivers + estimator into DIR")
@@ -64,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     off.add_argument("--check", action="store_true",
                      help="compare the replayed efforts with the ones the log recorded: exit 3 when any differs "
                           "beyond 1e-9 relative, or differs at all while the log's kernels are these")
+    off.add_argument("--workers", type=int, default=None, metavar="N",
+                     help="processes for several logs (default: one per CPU)")
     off.add_argument("--force", action="store_true", help="replace DIR/replay.mcap, report.json")
     zen = parser.add_argument_group("zenoh playback")
     zen.add_argument("--wait", type=float, default=0.0, metavar="S",
@@ -96,10 +100,15 @@ def run(args: argparse.Namespace) -> int:
     from gateway.commands import check_rt_priority
 
     check_rt_priority(args.rt_priority)
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers {args.workers}: must be at least 1")
     if args.out is not None:
         if args.rt_priority:
             raise UserError("--rt-priority is for live playback (--interface, --zenoh), not --out")
-        return _offline(args, can_ids)
+        return _offline(args, can_ids) if len(args.file) == 1 else _offline_many(args, can_ids)
+    if len(args.file) > 1:
+        raise UserError(f"live playback takes one log, not {len(args.file)} (several logs: --out DIR)")
+    args.file = args.file[0]
     if args.loop and args.rate == 0:
         raise UserError("--loop needs --rate > 0 (an unpaced endless loop would flood)")
     if args.interface:
@@ -109,14 +118,16 @@ def run(args: argparse.Namespace) -> int:
     return _live_zenoh(args)
 
 
+def _offline_options(args: argparse.Namespace, can_ids) -> dict:
+    return dict(robot=args.robot, model=args.model, fd=True if args.fd else None, start_s=args.start,
+                duration_s=args.duration, can_ids=can_ids, topics=args.topic or None, copy_can=args.copy_can,
+                overwrite=args.force, samples=args.samples, check=args.check)
+
+
 def _offline(args: argparse.Namespace, can_ids) -> int:
     from gateway.replay import replay_offline
 
-    r = replay_offline(args.file, args.out, robot=args.robot, model=args.model,
-                       fd=True if args.fd else None, start_s=args.start,
-                       duration_s=args.duration, can_ids=can_ids, topics=args.topic or None,
-                       copy_can=args.copy_can, overwrite=args.force, samples=args.samples,
-                       check=args.check, progress=not args.quiet, warn=_warn)
+    r = replay_offline(args.file[0], args.out, progress=not args.quiet, warn=_warn, **_offline_options(args, can_ids))
     print(f"bsc replay: {r.frames_in} frames, {r.log_duration_s:.3f} s of log in "
           f"{r.wall_s:.2f} s ({r.speed_x_realtime:.1f}x real time, {r.frames_per_s:.0f} frames/s)")
     print(f"bsc replay: {r.samples} samples, {r.efforts} efforts ({r.good_efforts} good), "
@@ -135,6 +146,57 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
             from gateway.cli import EXIT_TARGETS_MISSED
 
             return EXIT_TARGETS_MISSED
+    return 0
+
+
+def _offline_many(args: argparse.Namespace, can_ids) -> int:
+    """Several logs: each into its own folder of DIR, one session per process; a line per log as it
+    ends, a total, and DIR/replays.json (each log's output, figures or error)."""
+    import json
+    import time
+    from pathlib import Path
+
+    from gateway.cli import EXIT_TARGETS_MISSED, EXIT_USAGE
+    from gateway.parallel import workers_for
+    from gateway.replay import replay_many
+
+    out = Path(args.out)
+    n = len(args.file)
+    workers = workers_for(n, args.workers)
+
+    def done(i, o) -> None:
+        for w in o.warnings:
+            print(f"bsc replay: {o.source}: warning: {w}", file=sys.stderr)
+        if o.error is not None:
+            print(f"bsc replay: {o.source}: error: {o.error}", file=sys.stderr)
+            return
+        r = o.report
+        line = (f"bsc replay: {o.source} -> {r.output}: {r.frames_in} frames, {r.log_duration_s:.1f} s of log, "
+                f"{r.speed_x_realtime:.1f}x real time, {r.efforts} efforts ({r.good_efforts} good)")
+        if r.check is not None:
+            line += f"; check: {r.check['summary']}"
+        print(line, flush=True)
+
+    t0 = time.perf_counter()
+    outcomes = replay_many(args.file, out, workers=workers, progress=not args.quiet and sys.stderr.isatty(),
+                           done=done, **_offline_options(args, can_ids))
+    wall = time.perf_counter() - t0
+    good = [o for o in outcomes if o.error is None]
+    log_s = sum(o.report.log_duration_s for o in good)
+    print(f"bsc replay: {len(good)} of {n} logs, {log_s:.1f} s of log in {wall:.1f} s "
+          f"({log_s / wall if wall > 0 else 0:.1f}x real time on {workers} process{'es' if workers > 1 else ''})")
+    index = [{"source": o.source, "output": o.output, "error": o.error, "warnings": o.warnings,
+              **({} if o.report is None else {"frames_in": o.report.frames_in, "efforts": o.report.efforts,
+                                             "log_duration_s": o.report.log_duration_s,
+                                             "speed_x_realtime": o.report.speed_x_realtime,
+                                             "check": o.report.check})} for o in outcomes]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "replays.json").write_text(json.dumps({"logs": index, "wall_s": wall, "workers": workers}, indent=1) + "\n")
+    print(f"bsc replay: wrote {out}/replays.json")
+    if len(good) < n:
+        return EXIT_USAGE
+    if any(o.report.check is not None and not o.report.check["ok"] for o in good):
+        return EXIT_TARGETS_MISSED
     return 0
 
 

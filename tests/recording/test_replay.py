@@ -366,6 +366,48 @@ def test_check_needs_the_whole_log_with_its_own_robot(session, tmp_path, capsys)
     assert "--check compares with the efforts the log recorded" in capsys.readouterr().err
 
 
+def test_many_logs_replay_on_every_core_each_into_its_own_folder(robot, tmp_path, capsys):
+    """Several logs (two of one name in different folders, one damaged): each replays in a worker
+    process into its own folder, the same efforts as replaying it alone; the damaged one is
+    reported and the others go on; exit 2 for it; replays.json lists every log."""
+    from gateway.cli import main
+
+    for day in ("day1", "day2"):
+        (tmp_path / "runs" / day).mkdir(parents=True)
+    a, b = (tmp_path / "runs" / day / "session.mcap" for day in ("day1", "day2"))
+    _live_log(a, robot)
+    b.write_bytes(a.read_bytes())
+    bad = tmp_path / "runs" / "notes.mcap"
+    bad.write_text("not a log")
+    out = tmp_path / "out"
+    status = main(["replay", str(a), str(b), str(bad), "--out", str(out), "--workers", "2", "--check", "--quiet"])
+    text = capsys.readouterr()
+    assert status == 2, text
+    assert f"{bad}: error: " in text.err and "not an MCAP file" in text.err
+    assert "bsc replay: 2 of 3 logs" in text.out and "on 2 processes" in text.out
+    for day in ("day1", "day2"):
+        got = out / day / "session" / rp.OUTPUT_NAME
+        assert efforts_by_topic(got) == efforts_by_topic(a) and efforts_count(a) > 100
+        assert "byte-identical" in json.loads((out / day / "session" / rp.REPORT_NAME).read_text())["check"]["summary"]
+    index = json.loads((out / "replays.json").read_text())
+    assert [(Path(x["source"]).name, x["error"] is None) for x in index["logs"]] == [
+        ("session.mcap", True), ("session.mcap", True), ("notes.mcap", False)]
+
+
+def test_output_folders_of_many_logs():
+    assert rp.output_dirs([Path("x/a.mcap"), Path("y/b.mcap")], Path("o")) == [Path("o/a"), Path("o/b")]
+    assert rp.output_dirs([Path("/r/d1/s.mcap"), Path("/r/d2/s.mcap")], Path("o")) == [Path("o/d1/s"), Path("o/d2/s")]
+    with pytest.raises(rp.ReplayError, match="given twice"):
+        rp.output_dirs([Path("/r/s.mcap"), Path("/r/s.mcap")], Path("o"))
+
+
+def test_live_playback_takes_one_log(session, capsys):
+    from gateway.cli import main
+
+    assert main(["replay", str(session[0]), str(session[0]), "--zenoh"]) == 2
+    assert "live playback takes one log, not 2" in capsys.readouterr().err
+
+
 def test_offline_cli_filters_and_report(session, tmp_path, capsys, standin):
     path, fl, _ = session
     out = tmp_path / "out"
