@@ -1,8 +1,10 @@
 """Read back what :mod:`gateway.recorder` wrote: inspect, recover and replay MCAP logs.
 
-- :func:`scan` walks a file record by record (the mcap library's record-level reader, never its
-  summary), so it works on a file cut short by a crash or a full disk and stops cleanly at the
-  first incomplete or corrupt record.
+- :func:`scan` walks a file record by record (the mcap library's record-level reader), so it
+  works on a file cut short by a crash or a full disk and stops cleanly where it was cut. A
+  corrupt region in the middle is passed over: the walk resumes at the next chunk that is whole
+  and passes its CRC, and the region is reported (``ScanResult.skipped``). Channels whose
+  defining chunk was lost are taken from the summary when the file still has a valid one.
 - :func:`inspect` is what ``bsc info`` prints: duration, channels, rates, gaps, metadata,
   attachments, and whether the file is complete (valid footer and summary) or truncated.
 - :func:`recover` rewrites every complete record of a truncated file into a valid one.
@@ -74,6 +76,23 @@ class ScanResult:
     data_complete: bool = False
     stop_reason: str = ""
     stop_offset: int = 0
+    # (start, end, why) of every byte range passed over: a corrupt chunk, or unreadable bytes up to
+    # the next chunk that is whole and passes its CRC
+    skipped: list[tuple[int, int, str]] = dataclasses.field(default_factory=list)
+    announced: set = dataclasses.field(default_factory=set)     # ("s"|"c", id) given to on_record
+
+    @property
+    def bytes_skipped(self) -> int:
+        return sum(b - a for a, b, _ in self.skipped)
+
+    def damage(self, limit: int = 3) -> str:
+        """The skipped regions in words ("" when none), the first ``limit`` with their offsets."""
+        if not self.skipped:
+            return ""
+        where = ", ".join(f"bytes {a}-{b} ({why})" for a, b, why in self.skipped[:limit])
+        more = f", and {len(self.skipped) - limit} more" if len(self.skipped) > limit else ""
+        return (f"{len(self.skipped)} damaged region(s) skipped, {human_size(self.bytes_skipped)} "
+                f"({self.chunks_skipped} corrupt chunk(s)): {where}{more}")
 
 
 def scan(path: str | os.PathLike[str],
@@ -98,6 +117,21 @@ def scan(path: str | os.PathLike[str],
         if len(magic) < MAGIC_SIZE:
             raise McapFileError(f"{path}: truncated inside the MCAP magic ({size} bytes)")
         offset = MAGIC_SIZE
+        if not header_only:
+            _preload_summary(result, path)
+
+        def bad(why: str) -> bool:
+            """Pass over a corrupt record: True to go on from the next good chunk, False to stop."""
+            nonlocal offset
+            nxt = _resync(f, offset + 1, size) if result.header is not None else None
+            if nxt is None:
+                _stop(result, offset, why)
+                return False
+            result.skipped.append((offset, nxt, why))
+            offset = nxt
+            f.seek(nxt)
+            return True
+
         while True:
             head = f.read(_RECORD_HEADER.size)
             if len(head) < _RECORD_HEADER.size:
@@ -105,12 +139,14 @@ def scan(path: str | os.PathLike[str],
                 break
             opcode, length = _RECORD_HEADER.unpack(head)
             if opcode not in _KNOWN_OPCODES and opcode < 0x80:
-                _stop(result, offset, f"invalid record opcode 0x{opcode:02x} (corrupt data)")
+                if bad(f"invalid record opcode 0x{opcode:02x} (corrupt data)"):
+                    continue
                 break
             if length > size - offset - _RECORD_HEADER.size:
                 name = _opcode_name(opcode)
-                _stop(result, offset, f"incomplete {name} record ({length} bytes announced, "
-                                      f"{size - offset - _RECORD_HEADER.size} left)")
+                if bad(f"incomplete {name} record ({length} bytes announced, "
+                       f"{size - offset - _RECORD_HEADER.size} left)"):
+                    continue
                 break
             body = f.read(length)
             try:
@@ -118,7 +154,8 @@ def scan(path: str | os.PathLike[str],
                                                 emit_chunks=True,
                                                 record_size_limit=length).records), None)
             except _PARSE_ERRORS as exc:
-                _stop(result, offset, f"corrupt {_opcode_name(opcode)} record ({exc})")
+                if bad(f"corrupt {_opcode_name(opcode)} record ({exc})"):
+                    continue
                 break
             if result.header is None:
                 if not isinstance(record, Header):
@@ -130,8 +167,10 @@ def scan(path: str | os.PathLike[str],
                 result.chunks += 1
                 try:
                     inner = breakup_chunk(record, validate_crc=True)
-                except _PARSE_ERRORS:
+                except _PARSE_ERRORS as exc:
                     result.chunks_skipped += 1
+                    result.skipped.append((offset, offset + _RECORD_HEADER.size + length,
+                                           f"corrupt chunk: {exc}"))
                     inner = []
                 for rec in inner:
                     _take(result, rec, on_message, on_record)
@@ -168,11 +207,22 @@ def _take(result: ScanResult, rec: Any, on_message, on_record) -> None:
             result.orphan_messages += 1
             return
         result.message_count += 1
+        if ("c", channel.id) not in result.announced:     # known from the summary only: its chunk was lost
+            schema = result.schemas.get(channel.schema_id)
+            if schema is not None:
+                _take(result, schema, None, on_record)
+            _take(result, channel, None, on_record)
         if on_message is not None:
             on_message(channel, rec)
     elif isinstance(rec, Schema):
+        if ("s", rec.id) in result.announced:
+            return
+        result.announced.add(("s", rec.id))
         result.schemas[rec.id] = rec
     elif isinstance(rec, Channel):
+        if ("c", rec.id) in result.announced:
+            return
+        result.announced.add(("c", rec.id))
         result.channels[rec.id] = rec
     elif isinstance(rec, Metadata):
         result.metadata.append(rec)
@@ -182,6 +232,74 @@ def _take(result: ScanResult, rec: Any, on_message, on_record) -> None:
         return                               # indexes, statistics: rebuilt by any writer
     if on_record is not None:
         on_record(rec)
+
+
+def _preload_summary(result: ScanResult, path: Path) -> None:
+    """Schemas and channels from the summary of a file that still has a valid one: a message
+    whose channel's defining chunk was lost in a damaged region keeps its channel."""
+    if not check_footer(path)[0]:
+        return
+    try:
+        from mcap.reader import SeekingReader
+
+        with open(path, "rb") as f:
+            summary = SeekingReader(f, validate_crcs=True).get_summary()
+    except _PARSE_ERRORS + (OSError,):
+        return
+    if summary is not None:
+        result.schemas.update(summary.schemas)
+        result.channels.update(summary.channels)
+
+
+_CHUNK_FIXED = struct.Struct("<QQQII")     # message start/end time, uncompressed size, crc, compression length
+_RESYNC_BLOCK = 1 << 20
+
+
+def _resync(f, start: int, size: int) -> int | None:
+    """The offset of the first chunk record at or after ``start`` that is whole, decompresses and
+    passes its CRC (a chunk written without a CRC cannot be told from noise: it is not taken)."""
+    pos = start
+    while pos < size - _RECORD_HEADER.size:
+        f.seek(pos)
+        buf = f.read(_RESYNC_BLOCK + 64)
+        i = buf.find(b"\x06")
+        while 0 <= i < _RESYNC_BLOCK:
+            if _chunk_at(f, pos + i, size, buf[i:i + 64]):
+                return pos + i
+            i = buf.find(b"\x06", i + 1)
+        pos += _RESYNC_BLOCK
+    return None
+
+
+def _chunk_at(f, p: int, size: int, peek: bytes) -> bool:
+    if len(peek) < _RECORD_HEADER.size + _CHUNK_FIXED.size:
+        f.seek(p)
+        peek = f.read(64)
+        if len(peek) < _RECORD_HEADER.size + _CHUNK_FIXED.size:
+            return False
+    _, length = _RECORD_HEADER.unpack_from(peek)
+    if length < _CHUNK_FIXED.size + 8 or p + _RECORD_HEADER.size + length > size:
+        return False
+    t0, t1, usize, crc, clen = _CHUNK_FIXED.unpack_from(peek, _RECORD_HEADER.size)
+    if t0 > t1 or crc == 0 or clen > 8 or usize > 1 << 34:
+        return False
+    at = _RECORD_HEADER.size + _CHUNK_FIXED.size
+    if len(peek) < at + clen + 8 or peek[at:at + clen] not in (b"", b"zstd", b"lz4"):
+        return False
+    (n,) = struct.unpack_from("<Q", peek, at + clen)
+    if _CHUNK_FIXED.size + clen + 8 + n != length:
+        return False
+    f.seek(p)
+    data = f.read(_RECORD_HEADER.size + length)
+    try:
+        rec = next(iter(StreamReader(io.BytesIO(data), skip_magic=True, emit_chunks=True,
+                                     record_size_limit=length).records), None)
+        if not isinstance(rec, Chunk):
+            return False
+        breakup_chunk(rec, validate_crc=True)
+    except _PARSE_ERRORS:
+        return False
+    return True
 
 
 def _opcode_name(opcode: int) -> str:
@@ -268,6 +386,8 @@ class LogInfo:
     orphan_messages: int
     stop_reason: str
     stop_offset: int
+    skipped: list[tuple[int, int, str]] = dataclasses.field(default_factory=list)   # damaged byte ranges
+    bytes_skipped: int = 0
 
     @property
     def duration_s(self) -> float:
@@ -330,8 +450,11 @@ def inspect(path: str | os.PathLike[str], gap_threshold_s: float = 1.0) -> LogIn
     result = scan(path, on_message=on_message, on_record=on_record)
     complete, why = (check_footer(path) if result.data_complete
                      else (False, result.stop_reason))
-    if result.chunks_skipped:
-        complete, why = False, f"{result.chunks_skipped} corrupt chunk(s) skipped"
+    if result.skipped:
+        status = f"damaged: {result.damage()}" + ("" if result.data_complete else f"; then truncated: {why}")
+        complete = False
+    else:
+        status = "complete" if complete else f"truncated: {why}"
     for channel in result.channels.values():     # channels with no messages are listed too
         if channel.id not in per:
             schema = result.schemas.get(channel.schema_id)
@@ -342,7 +465,7 @@ def inspect(path: str | os.PathLike[str], gap_threshold_s: float = 1.0) -> LogIn
     ends = [c.last_ns for c in channels if c.last_ns is not None]
     return LogInfo(
         path=result.path, size=result.size, complete=complete,
-        status="complete" if complete else f"truncated: {why}",
+        status=status,
         library=result.header.library, profile=result.header.profile,
         message_count=result.message_count, start_ns=min(starts) if starts else None,
         end_ns=max(ends) if ends else None, channels=channels,
@@ -351,7 +474,8 @@ def inspect(path: str | os.PathLike[str], gap_threshold_s: float = 1.0) -> LogIn
                       "log_time_ns": a.log_time} for a in result.attachments],
         gap_threshold_s=gap_threshold_s, chunks=result.chunks,
         chunks_skipped=result.chunks_skipped, orphan_messages=result.orphan_messages,
-        stop_reason=result.stop_reason, stop_offset=result.stop_offset)
+        stop_reason=result.stop_reason, stop_offset=result.stop_offset,
+        skipped=list(result.skipped), bytes_skipped=result.bytes_skipped)
 
 
 # ----------------------------------------------------------------------------- recover
@@ -370,11 +494,14 @@ class RecoverReport:
     stop_reason: str
     stop_offset: int
     bytes_dropped: int
+    damage: str = ""                       # ScanResult.damage(): the regions passed over, in words
+    bytes_skipped: int = 0
 
 
 def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | None = None,
             overwrite: bool = False) -> RecoverReport:
-    """Rewrite every complete record of ``source`` into a valid MCAP file ``output``.
+    """Rewrite every complete record of ``source`` into a valid MCAP file ``output``: up to where
+    it was cut, and past every damaged region (:func:`scan` resumes at the next good chunk).
 
     Schemas, channels, metadata, attachments and messages are copied in file order (message
     times, sequence numbers and bytes unchanged; schema and channel ids may be renumbered).
@@ -429,6 +556,8 @@ def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | Non
                 "stop_reason": result.stop_reason,
                 "stop_offset": str(result.stop_offset),
                 "chunks_skipped": str(result.chunks_skipped),
+                "bytes_skipped": str(result.bytes_skipped),
+                "skipped_regions": json.dumps(result.skipped[:1000]),
                 "messages": str(counts["messages"]),
             })
             writer.finish()
@@ -444,7 +573,8 @@ def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | Non
         attachments=counts["attachments"], chunks_skipped=result.chunks_skipped,
         orphan_messages=result.orphan_messages, stop_reason=result.stop_reason,
         stop_offset=result.stop_offset,
-        bytes_dropped=0 if result.data_complete else result.size - result.stop_offset)
+        bytes_dropped=0 if result.data_complete else result.size - result.stop_offset,
+        damage=result.damage(), bytes_skipped=result.bytes_skipped)
 
 
 def scan_header(path: str | os.PathLike[str]) -> Header:

@@ -761,7 +761,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                    "replay_of_session": ctx.metadata.get(RECORDING_METADATA, {}).get("session", ""),
                    "mode": "offline replay",
                    **({"model": str(model)} if model is not None else {})})
-        with Recorder(out_path, overwrite=overwrite) as rec:
+        with _replaced_on_success(out_path) as part, Recorder(part, overwrite=True) as rec:
             rec.add_session_context(**context)
 
             class Count(Sink):
@@ -866,8 +866,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             rejections, per_device = _rejections(final)
             wall = time.perf_counter() - t0
         if frames == 0:
-            for p in rec.paths:
-                p.unlink(missing_ok=True)
+            out_path.unlink(missing_ok=True)
             raise ReplayError(f"{path}: no CAN frames match the filters / time window")
         dur = (last - first) / 1e9 if first is not None else 0.0
         report = OfflineReport(
@@ -880,13 +879,27 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             log_duration_s=dur, wall_s=wall, speed_x_realtime=dur / wall if wall > 0 else 0.0,
             frames_per_s=frames / wall if wall > 0 else 0.0,
             recorder=dataclasses.asdict(rec.stats) | {"dropped": rec.stats.dropped,
-                                                      "files": [str(p) for p in rec.paths]})
+                                                      "files": [str(out_path)]})
     if check:
         report.check = compare_efforts(src, out_path).to_json()
     tmp = report_path.with_name(f".{report_path.name}.tmp")
     tmp.write_text(json.dumps(report.to_json(), indent=1) + "\n")
     os.replace(tmp, report_path)
     return report
+
+
+@contextlib.contextmanager
+def _replaced_on_success(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` to write to; renamed to ``path`` when the block ends
+    normally, deleted when it raises (a replay that fails part-way, or is interrupted, leaves no
+    file that looks complete, and an earlier output stays as it was)."""
+    part = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        yield part
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    os.replace(part, path)
 
 
 def output_dirs(files: list[Path], out_dir: Path) -> list[Path]:

@@ -94,6 +94,7 @@ class SessionFeatures:
     health: dict[str, dict[str, float]] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)          # e.g. analysed from a truncated log's intact part
 
     @property
     def name(self) -> str:
@@ -179,19 +180,49 @@ def _topics_with_schemas(path: Path, schemas) -> list[str]:
 
 
 def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
+    """The metadata records of a log; of a truncated one (no summary), those that survive."""
     from mcap.reader import SeekingReader
+    from mcap.records import Metadata
 
+    from gateway.mcaplog import check_footer, scan
+
+    if not check_footer(path)[0]:
+        found: dict[str, dict[str, str]] = {}
+
+        def keep(rec) -> None:
+            if isinstance(rec, Metadata):
+                found.setdefault(rec.name, dict(rec.metadata))
+
+        scan(path, on_record=keep)
+        return found
     with open(path, "rb") as f:
         return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
 
 
 def analyze_session(path: str | os.PathLike[str]) -> SessionFeatures:
-    """Read one session log and identify its friction, efficiencies and sensor checks."""
-    from gateway.mcaplog import McapFileError, read_messages
+    """Read one session log and identify its friction, efficiencies and sensor checks. A log cut
+    short (a killed recorder, a full disk) or damaged is analysed from what is intact in it, as
+    ``bsc replay`` does, with a note; one that is not an MCAP log at all raises AnalysisError."""
+    from gateway.mcaplog import McapFileError
+    from gateway.replay import ReplayError, readable
 
     path = Path(path)
+    notes: list[str] = []
     try:
-        meta = read_metadata(path)
+        with readable(path, warn=notes.append) as src:
+            feats = _analyze_file(path, Path(src))
+    except (McapFileError, ReplayError, OSError) as exc:
+        raise AnalysisError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
+    feats.notes.extend(n.replace("replaying", "analysing") for n in notes)
+    return feats
+
+
+def _analyze_file(path: Path, src: Path) -> SessionFeatures:
+    """:func:`analyze_session` of the complete log ``src`` (``path`` itself, or its recovered copy)."""
+    from gateway.mcaplog import McapFileError, read_messages
+
+    try:
+        meta = read_metadata(src)
     except Exception as exc:  # noqa: BLE001 - any reader failure means: not a readable log
         raise AnalysisError(f"{path}: not a readable MCAP log ({exc})") from None
     joint_rows: dict[str, list] = {}
@@ -203,8 +234,8 @@ def analyze_session(path: str | os.PathLike[str]) -> SessionFeatures:
     counts = {"joint_efforts": 0, "thruster_efforts": 0, "not_good": 0, "stale_command": 0}
     wanted = (JOINT_SCHEMA, THRUSTER_SCHEMA, DEVICE_HEALTH_SCHEMA, BUS_HEALTH_SCHEMA)
     try:
-        topics = _topics_with_schemas(path, wanted)
-        for m in (read_messages(path, topics) if topics else ()):
+        topics = _topics_with_schemas(src, wanted)
+        for m in (read_messages(src, topics) if topics else ()):
             start = m.log_time_ns if start is None else start
             end = m.log_time_ns
             d = m.data

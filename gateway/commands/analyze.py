@@ -41,6 +41,9 @@ def run(args: argparse.Namespace) -> int:
                                    workers=args.workers, progress=not args.quiet and sys.stderr.isatty())
     for reason in skipped:
         print(f"bsc analyze: skipped {reason}", file=sys.stderr)
+    for ses in result.sessions:
+        for note in ses.notes:
+            print(f"bsc analyze: note: {note}", file=sys.stderr)
     if args.json:
         for f in result.findings:
             print(json.dumps(f.to_json(), allow_nan=False), flush=False)

@@ -25,6 +25,8 @@ def run(args: argparse.Namespace) -> int:
     out = [f"file:        {info.path} ({human_size(info.size)})"]
     if info.complete:
         out.append("status:      complete (valid summary and footer)")
+    elif info.skipped:
+        out.append(f"status:      {info.status}; run `bsc recover {info.path}` for a valid copy of the rest")
     else:
         out.append(f"status:      {info.status} at byte {info.stop_offset}; "
                    f"run `bsc recover {info.path}` for a valid copy")

@@ -15,10 +15,14 @@ def run(args: argparse.Namespace) -> int:
     from gateway.mcaplog import human_size, recover
 
     report = recover(args.file, args.output, overwrite=args.force)
-    state = ("was already complete" if report.was_complete
+    state = ("was already complete" if report.was_complete and not report.damage
+             else "" if not report.stop_reason
              else f"was cut at byte {report.stop_offset} ({report.stop_reason}); "
                   f"{human_size(report.bytes_dropped)} of incomplete data dropped")
-    print(f"{report.source} {state}")
+    if report.damage:
+        print(f"{report.source}: {report.damage}")
+    if state:
+        print(f"{report.source} {state}")
     print(f"wrote {report.output}: {report.messages} messages on {report.channels} channels, "
           f"{report.metadata} metadata, {report.attachments} attachments"
           + (f"; {report.chunks_skipped} corrupt chunks skipped" if report.chunks_skipped else "")

@@ -154,3 +154,23 @@ def test_real_friction_growth_during_a_bias_is_still_an_actuator_fault():
                                                   "coulomb": {"arm0/j2": 90.0 + 20.0 * s}}))
     got = kinds(res)
     assert ("sensor", "arm0", 4) in got and any(k == "actuator" and t == "arm0/j2" for k, t, _ in got)
+
+
+def test_truncated_and_foreign_logs_in_a_series(tmp_path):
+    """A session cut short is analysed from its intact part (as bsc replay does), with a note,
+    and keeps its place in time order; a file that is not a log is skipped with one readable
+    reason, never a raw library message."""
+    from gateway.analysis import run
+
+    paths = write_series(tmp_path, 4, 99)                  # z04 (first) .. z01 (last)
+    whole = run([tmp_path], workers=1)[0].sessions
+    cut = paths[1]                                          # the second session in time order
+    data = cut.read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    (tmp_path / "notes.mcap").write_text("hello")
+    result, skipped = run([tmp_path], workers=1)
+    assert [s.name for s in result.sessions] == [s.name for s in whole] == ["z04", "z03", "z02", "z01"]
+    got = {s.name: s for s in result.sessions}
+    assert len(got["z03"].notes) == 1 and "is truncated" in got["z03"].notes[0] and "analysing the" in got["z03"].notes[0]
+    assert 0 < got["z03"].counts["joint_efforts"] < {s.name: s for s in whole}["z03"].counts["joint_efforts"]
+    assert skipped == [f"{tmp_path / 'notes.mcap'}: not an MCAP file (bad magic bytes b'hello')"]

@@ -408,6 +408,34 @@ def test_live_playback_takes_one_log(session, capsys):
     assert "live playback takes one log, not 2" in capsys.readouterr().err
 
 
+def test_a_replay_that_fails_part_way_leaves_no_complete_looking_output(robot, tmp_path):
+    """A corrupt chunk in the middle of a log stops the replay with an error naming bsc recover;
+    the output is written under a temporary name and renamed only on success, so no file that
+    bsc info calls complete is left, and an earlier output is kept as it was."""
+    from mcap.reader import make_reader
+
+    log = _live_log(tmp_path / "live.mcap", robot)
+    with open(log, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    mid = chunks[len(chunks) // 2]
+    data = bytearray(log.read_bytes())
+    at = mid.chunk_start_offset + mid.chunk_length // 2
+    data[at:at + 32] = bytes(32)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data)
+    out = tmp_path / "out"
+    rp.replay_offline(log, out)                                  # an earlier, good output
+    before = (out / rp.OUTPUT_NAME).read_bytes()
+    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
+        rp.replay_offline(bad, out, overwrite=True)
+    assert (out / rp.OUTPUT_NAME).read_bytes() == before
+    assert not [p for p in out.iterdir() if p.name.endswith(".part")]
+    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
+        rp.replay_offline(bad, tmp_path / "fresh")
+    assert not (tmp_path / "fresh" / rp.OUTPUT_NAME).exists()
+    assert not [p for p in (tmp_path / "fresh").iterdir() if p.name.endswith(".part")]
+
+
 def test_offline_cli_filters_and_report(session, tmp_path, capsys, standin):
     path, fl, _ = session
     out = tmp_path / "out"
