@@ -1009,6 +1009,7 @@ class Recorder:
         self._dropped_error += self._pending_msgs   # handed to the writer, never reached disk
         self._pending_msgs = self._pending_bytes = 0
         if self._stream is not None:
+            self._bytes_done += self._stream.tell()  # what the OS took of this file before the failure
             try:
                 self._stream.close(sync=False)
             except OSError:

@@ -195,9 +195,10 @@ class Recording:
             lines.append("zenoh rejected: " + (", ".join(
                 f"{k} {v}" for k, v in sorted(self.rejected.items())) or "0")
                 + (f" (kept raw on {REJECTED_TOPIC})" if self.rejected else ""))
-        lines.append(f"recorder: {st.written} written, {st.dropped} dropped (queue full "
+        lines.append(f"recorder: {st.flushed} messages in the file(s), {st.dropped} dropped (queue full "
                      f"{st.dropped_queue_full}, write error {st.dropped_write_error}, after close "
-                     f"{st.dropped_closed}), {st.files} file(s), {st.bytes_written} bytes")
+                     f"{st.dropped_closed}), {st.files} file(s), {st.bytes_written} bytes"
+                     + (f"; stopped: {st.error}" if st.error else ""))
         return lines
 
 
@@ -278,8 +279,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"bsc record: robot {robot.name} -> {out}: {what}", flush=True)
             end = None if args.duration is None else time.monotonic() + args.duration
             try:
-                while not stop.is_set():
-                    wait = 0.5 if end is None else min(0.5, end - time.monotonic())
+                # a write failure (a full disk) stops the recording at once: closing raises it
+                while not stop.is_set() and rec.error is None:
+                    wait = 0.1 if end is None else min(0.1, end - time.monotonic())
                     if wait <= 0:
                         break
                     stop.wait(wait)

@@ -183,3 +183,59 @@ def test_record_errors_are_one_line(tmp_path, read_only_dir, capsys):
         assert message in err, (args, err)
     assert existing.read_bytes() == b"x"
     assert not (tmp_path / "a.mcap").exists()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounts a small tmpfs (root)")
+def test_a_full_disk_stops_the_recording_at_once_with_one_error(tmp_path):
+    """bsc record on a 256 KiB filesystem, fed zenoh samples until it stops: it stops on its own
+    as soon as a write fails (not at --duration), prints its summary with the messages and bytes
+    really in the file, then one error line, exit 2; bsc recover gets back every message the
+    summary says is in the file."""
+    import random
+
+    from support import subscribed
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], check=True)
+    try:
+        out, ep = disk / "s.mcap", f"tcp/127.0.0.1:{_free_port()}"
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "gateway.cli", "record", "--robot", ROBOT, "--out", str(out),
+             "--listen", ep, "--duration", "300"],
+            cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            first = proc.stdout.readline()
+            assert first.startswith("bsc record: robot paper_robot"), (first, proc.stderr.read())
+            rnd = random.Random(1)
+            key = keys.wrench(ROBOT, "arm0")
+            with zenoh.open(make_config(connect=[ep])) as pub_s:
+                pub = pub_s.declare_publisher(key)
+                subscribed(pub_s, key)
+                sent, deadline = 0, time.monotonic() + 120
+                while proc.poll() is None and time.monotonic() < deadline:
+                    for _ in range(50):
+                        pub.put(codec.encode(WrenchSample("arm0", sent, sent & 0xFF,
+                                                          tuple(rnd.uniform(-50, 50) for _ in range(3)),
+                                                          tuple(rnd.uniform(-5, 5) for _ in range(3)))))
+                        sent += 1
+                    time.sleep(0.005)
+                stopped = proc.poll() is not None
+            rest, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert stopped, f"still recording after {sent} samples"
+        assert proc.returncode == 2, (rest, err)
+        assert err.count("\n") == 1 and "No space left on device" in err and "bsc recover" in err, err
+        line = next(x for x in rest.splitlines() if x.startswith("bsc record: recorder: "))
+        in_file = int(line.split("recorder: ")[1].split()[0])
+        size = int(line.split(" bytes")[0].rsplit(" ", 1)[1])
+        assert size == out.stat().st_size > 100_000, (line, out.stat().st_size)
+        assert "stopped: " in line and "write error " in line
+        fixed = mcaplog.recover(out, tmp_path / "fixed.mcap")
+        got = sum(1 for _ in mcaplog.read_messages(tmp_path / "fixed.mcap", [key]))
+        assert got == fixed.messages == in_file > 100, (got, fixed.messages, in_file)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
