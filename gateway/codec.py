@@ -25,6 +25,7 @@ import typing
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+from gateway.recorder import pair_value_type, pairs_json
 
 VERSION = 1
 ENCODING = "application/json"
@@ -67,6 +68,9 @@ class CodecError(ValueError):
 
 
 _FIELDS: dict[type, tuple[str, ...]] = {t: tuple(f.name for f in dataclasses.fields(t)) for t in TYPES.values()}
+# named counts and values (a health's rejected, an alert's evidence): arrays of {"name", "value"}
+_PAIRS: dict[type, frozenset[str]] = {t: frozenset(n for n, h in typing.get_type_hints(t).items() if pair_value_type(h))
+                                     for t in TYPES.values()}
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))   # json.dumps(obj, same options)
 
 
@@ -76,8 +80,9 @@ def encode(sample) -> bytes:
     if names is None:
         raise TypeError(f"cannot encode {cls.__name__}")
     obj = {"type": cls.__name__, "v": VERSION}
+    pairs = _PAIRS[cls]
     for n in names:
-        obj[n] = getattr(sample, n)
+        obj[n] = pairs_json(getattr(sample, n)) if n in pairs else getattr(sample, n)
     try:
         return _ENCODER.encode(obj).encode()
     except ValueError as exc:
@@ -109,6 +114,18 @@ def _convert(value, hint, where: str):
         args = typing.get_args(hint)
         if not isinstance(value, list):
             raise CodecError(f"{where}: expected an array")
+        vt = pair_value_type(hint)
+        if vt is not None:                 # [{"name": ..., "value": ...}] (or [name, value] of older payloads)
+            out = []
+            for d in value:
+                if isinstance(d, dict):
+                    if set(d) != {"name", "value"}:
+                        raise CodecError(f"{where}: expected objects with name and value")
+                    d = [d["name"], d["value"]]
+                if not isinstance(d, list) or len(d) != 2:
+                    raise CodecError(f"{where}: expected objects with name and value")
+                out.append((_convert(d[0], str, where), _convert(d[1], vt, where)))
+            return tuple(out)
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(v, args[0], where) for v in value)
         if len(value) != len(args):

@@ -692,13 +692,17 @@ def to_dataclass(cls: type, record: dict[str, Any]):
     where the field is a tuple, as in :mod:`drivers.samples`."""
     import typing
 
+    from gateway.recorder import pair_value_type, pairs_from_json
+
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in record:
             continue
         value = record[f.name]
-        if isinstance(value, list) and typing.get_origin(hints.get(f.name)) is tuple:
+        if isinstance(value, list) and pair_value_type(hints.get(f.name)):
+            value = pairs_from_json(value)
+        elif isinstance(value, list) and typing.get_origin(hints.get(f.name)) is tuple:
             value = tuple(value)
         kwargs[f.name] = value
     return cls(**kwargs)

@@ -63,6 +63,8 @@ DEFAULT_FLUSH_INTERVAL_S = 1.0
 _MESSAGE_OVERHEAD = 31
 _POLL_S = 0.01
 
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"   # declared by every channel's schema
+
 CAN_FRAME_SCHEMA: dict[str, Any] = {
     "title": CAN_SCHEMA_NAME,
     "description": "One raw CAN / CAN FD frame as python-can received it (bsc recorder).",
@@ -80,8 +82,8 @@ CAN_FRAME_SCHEMA: dict[str, Any] = {
         "dlc": {"type": "integer"},
         "data": {"type": "string", "contentEncoding": "base64",
                  "description": "payload bytes, base64"},
-        "channel": {"type": ["string", "integer", "null"],
-                    "description": "python-can channel the frame came from"},
+        "channel": {"type": "string",
+                    "description": "python-can channel the frame came from, as text (\"\" when none)"},
     },
     "required": ["t_ns", "arbitration_id", "is_extended_id", "is_remote_frame",
                  "is_error_frame", "is_fd", "bitrate_switch", "dlc", "data", "channel"],
@@ -99,9 +101,7 @@ def can_frame_to_record(msg) -> dict[str, Any]:
 
     ``data`` is base64 and round-trips bit for bit; ``t_ns`` is ``round(timestamp * 1e9)``.
     """
-    channel = msg.channel
-    if channel is not None and not isinstance(channel, (str, int)):
-        channel = str(channel)
+    channel = channel_text(msg.channel)
     return {
         "t_ns": round(msg.timestamp * 1e9),
         "arbitration_id": msg.arbitration_id,
@@ -116,6 +116,13 @@ def can_frame_to_record(msg) -> dict[str, Any]:
         "data": base64.b64encode(bytes(msg.data)).decode("ascii"),
         "channel": channel,
     }
+
+
+def channel_text(channel) -> str:
+    """A frame's python-can channel as recorded: text, ``""`` for none (one JSON type per field,
+    as Foxglove's schema loader needs; a log from before this wrote null or an integer, and reads
+    back as it was)."""
+    return "" if channel is None else channel if isinstance(channel, str) else str(channel)
 
 
 _JSON_BOOL = {True: "true", False: "false"}
@@ -149,8 +156,7 @@ def can_frame_json_rows(rows, channel=None) -> list[bytes]:
     straight from a socket): the same bytes python-can's message of the frame would give, with
     ``channel`` (the receiving bus's) and ``is_rx`` true (a received frame)."""
     b = _JSON_BOOL
-    if not (channel is None or isinstance(channel, (str, int))):
-        channel = str(channel)          # as can_frame_json: a list or an object is not a JSON value
+    channel = channel_text(channel)     # as can_frame_json: a list or an object is not a JSON value
     ch = _CHANNEL_JSON.get(channel)
     if ch is None:
         ch = _CHANNEL_JSON[channel] = _encode(channel)
@@ -182,7 +188,7 @@ def can_frame_from_record(record: Mapping[str, Any]):
         is_rx=record.get("is_rx", True),
         dlc=record["dlc"],
         data=base64.b64decode(record["data"], validate=True),
-        channel=record["channel"],
+        channel=record["channel"] if record["channel"] != "" else None,
     )
 
 
@@ -200,7 +206,8 @@ def json_schema_for(cls: type) -> dict[str, Any]:
     if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
         raise TypeError(f"{cls!r} is not a dataclass type")
     hints = typing.get_type_hints(cls)
-    props = {f.name: _type_schema(hints.get(f.name, Any)) for f in dataclasses.fields(cls)}
+    props = {f.name: PAIRS_SCHEMA[pair_value_type(hints[f.name])] if pair_value_type(hints.get(f.name)) else
+             _type_schema(hints.get(f.name, Any)) for f in dataclasses.fields(cls)}
     schema: dict[str, Any] = {"title": _qualname(cls), "type": "object", "properties": props,
                               "required": list(props)}
     doc = (cls.__doc__ or "").strip()
@@ -236,8 +243,11 @@ def _type_schema(tp: Any) -> dict[str, Any]:
         if args:
             items = [_type_schema(a) for a in args]
             out: dict[str, Any] = {"type": "array", "minItems": len(args), "maxItems": len(args)}
-            out["items"] = items[0] if all(i == items[0] for i in items) else {}
-            out["prefixItems"] = items
+            if all(i == items[0] for i in items):
+                out["items"] = items[0]          # a vector: Foxglove reads items, not prefixItems
+            else:
+                out["items"] = {}
+                out["prefixItems"] = items
             return out
         return {"type": "array"}
     if origin in (list, collections.abc.Sequence, set, frozenset):
@@ -245,6 +255,34 @@ def _type_schema(tp: Any) -> dict[str, Any]:
     if origin in (dict, collections.abc.Mapping):
         return {"type": "object"}
     return {}
+
+
+def pair_value_type(hint) -> type | None:
+    """``T`` when ``hint`` is ``tuple[tuple[str, T], ...]`` (named counts and values such as a
+    health's ``rejected`` or an alert's ``evidence``), else None. Such a field is written in JSON
+    as an array of ``{"name", "value"}`` objects (:func:`pairs_json`), not of two-item arrays:
+    Foxglove's schema loader takes no array of arrays."""
+    if typing.get_origin(hint) is not tuple:
+        return None
+    args = typing.get_args(hint)
+    if len(args) != 2 or args[1] is not Ellipsis or typing.get_origin(args[0]) is not tuple:
+        return None
+    inner = typing.get_args(args[0])
+    return inner[1] if len(inner) == 2 and inner[0] is str and inner[1] in (int, float) else None
+
+
+PAIRS_SCHEMA = {t: {"type": "array", "items": {
+    "type": "object", "properties": {"name": {"type": "string"}, "value": {"type": kind}},
+    "required": ["name", "value"]}} for t, kind in ((int, "integer"), (float, "number"))}
+
+
+def pairs_json(pairs) -> list[dict[str, Any]]:
+    return [{"name": k, "value": v} for k, v in pairs]
+
+
+def pairs_from_json(value) -> tuple:
+    """Back from :func:`pairs_json` (also the two-item arrays of a log written before it)."""
+    return tuple((d["name"], d["value"]) if isinstance(d, dict) else tuple(d) for d in value)
 
 
 def _dict_schema(example: Mapping[str, Any], name: str) -> dict[str, Any]:
@@ -261,7 +299,9 @@ def _qualname(cls: type) -> str:
 
 def _json_default(obj: Any) -> Any:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+        hints = typing.get_type_hints(type(obj))
+        return {f.name: pairs_json(getattr(obj, f.name)) if pair_value_type(hints.get(f.name))
+                else getattr(obj, f.name) for f in dataclasses.fields(obj)}
     if isinstance(obj, (bytes, bytearray, memoryview)):
         return base64.b64encode(bytes(obj)).decode("ascii")
     if isinstance(obj, enum.Enum):
@@ -292,13 +332,16 @@ def _dataclass_json(cls: type):
     f = _DATACLASS_JSON.get(cls)
     if f is None:
         names = _field_names(cls)
+        hints = typing.get_type_hints(cls)
+        pairs = {n for n in names if pair_value_type(hints.get(n))}
         if _c_encode is None or not all(n.isidentifier() for n in names):
             def f(sample, names=names):
-                return _encode({n: getattr(sample, n) for n in names})
+                return _encode({n: pairs_json(getattr(sample, n)) if n in pairs else getattr(sample, n)
+                                for n in names})
         else:
-            ns = {"c": _c_encode, "join": "".join}
-            exec("def f(o):\n    return join(c({" + ", ".join(f"{n!r}: o.{n}" for n in names)  # noqa: S102
-                 + "}, 0))\n", ns)
+            ns = {"c": _c_encode, "join": "".join, "p": pairs_json}
+            exec("def f(o):\n    return join(c({" + ", ".join(  # noqa: S102
+                f"{n!r}: p(o.{n})" if n in pairs else f"{n!r}: o.{n}" for n in names) + "}, 0))\n", ns)
             f = ns["f"]
         _DATACLASS_JSON[cls] = f
     return f
@@ -818,7 +861,7 @@ class Recorder:
         if cls is not None:
             meta["bsc.type"] = _qualname(cls)
         info = _Topic(len(self._topic_list), topic, schema_name,
-                      json.dumps(schema, indent=1).encode(), meta, cls)
+                      json.dumps({"$schema": JSON_SCHEMA_DIALECT, **schema}, indent=1).encode(), meta, cls)
         self._topic_list.append(info)
         self._control("topic", info)
         self._topics[topic] = info         # published last: other threads then see it complete

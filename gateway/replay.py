@@ -447,7 +447,7 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
                 payload = b64(data, validate=True)
             except ValueError as exc:
                 raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
-            if channel == b"null":
+            if channel == b"null" or channel == b'""':      # "" is how a frame without a channel is written
                 channel = None
             elif channel[:1] == b'"':
                 channel = channel[1:-1].decode("ascii")

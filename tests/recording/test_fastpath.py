@@ -35,9 +35,14 @@ def _samples(rnd: random.Random, n: int):
 
 
 def test_prebuilt_json_encoder_gives_the_same_bytes():
+    """The prebuilt per-type encoder gives the generic encoder's bytes (named counts such as a
+    health's rejected as [{"name", "value"}] in both)."""
+    seen_pairs = False
     for s in _samples(random.Random(1), 3000):
-        names = rc._field_names(type(s))
-        assert rc._dataclass_json(type(s))(s) == rc._encode({n: getattr(s, n) for n in names})
+        got = rc._dataclass_json(type(s))(s)
+        assert got == rc._encode(s)
+        seen_pairs |= '"rejected":[{"name":"dlc","value":1}' in got
+    assert seen_pairs
 
 
 def _content(path):

@@ -45,8 +45,11 @@ def test_can_record_round_trips_bit_for_bit(msg):
     back = can_frame_from_record(rec)
     assert bytes(back.data) == bytes(msg.data)
     for name in ("arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
-                 "is_fd", "bitrate_switch", "error_state_indicator", "is_rx", "dlc", "channel"):
+                 "is_fd", "bitrate_switch", "error_state_indicator", "is_rx", "dlc"):
         assert getattr(back, name) == getattr(msg, name), name
+    # the channel is recorded as text (one JSON type, as Foxglove needs): "" for none
+    assert back.channel == (None if msg.channel in (None, "") else str(msg.channel))
+    assert rec["channel"] == ("" if msg.channel is None else str(msg.channel))
     assert abs(back.timestamp - msg.timestamp) < 1e-6           # ns resolution, float seconds
 
 

@@ -1,0 +1,119 @@
+// Reads an MCAP log with Foxglove's own MCAP library (@mcap/core, indexed reader) and checks what
+// Foxglove needs of it:
+//  - every schema is JSON Schema that Foxglove's loader takes: "$schema" declared, one scalar
+//    "type" per field (no ["string","null"] unions, no anyOf/oneOf), no arrays of arrays, no
+//    tuple items (prefixItems, items given as a list);
+//  - every message is JSON (no NaN/Infinity tokens) and validates against its channel's schema
+//    (ajv, draft 2020-12);
+//  - the foxglove.* schemas (well-known, with a panel of their own) are the published ones
+//    (@foxglove/schemas), and their messages validate against those.
+// Prints one JSON report; exit status 1 when anything is wrong, 2 on a usage error.
+//
+//   node check_mcap.mjs FILE.mcap
+import { open } from "node:fs/promises";
+
+import { McapIndexedReader } from "@mcap/core";
+import { FileHandleReadable } from "@mcap/nodejs";
+import { loadDecompressHandlers } from "@mcap/support";
+import * as foxgloveSchemas from "@foxglove/schemas/jsonschema.js";
+import Ajv2020 from "ajv/dist/2020.js";
+
+const path = process.argv[2];
+if (!path) {
+  console.error("usage: node check_mcap.mjs FILE.mcap");
+  process.exit(2);
+}
+
+function foxgloveProblems(schema) {
+  const problems = [];
+  if (typeof schema.$schema !== "string") problems.push("no $schema");
+  const walk = (node, where) => {
+    if (Array.isArray(node)) {
+      node.forEach((n, i) => walk(n, `${where}[${i}]`));
+      return;
+    }
+    if (node === null || typeof node !== "object") return;
+    if (Array.isArray(node.type)) problems.push(`${where}: a union type ${JSON.stringify(node.type)}`);
+    if ("anyOf" in node || "oneOf" in node) problems.push(`${where}: anyOf/oneOf`);
+    if (node.type === "array") {
+      if ("prefixItems" in node || Array.isArray(node.items)) problems.push(`${where}: tuple items`);
+      else if (node.items && node.items.type === "array") problems.push(`${where}: an array of arrays`);
+    }
+    for (const [k, v] of Object.entries(node)) {
+      if (k === "enum" || k === "required" || k === "examples" || k === "default") continue;
+      walk(v, where ? `${where}.${k}` : k);
+    }
+  };
+  walk(schema, "");
+  return problems;
+}
+
+const fh = await open(path, "r");
+const reader = await McapIndexedReader.Initialize({
+  readable: new FileHandleReadable(fh),
+  decompressHandlers: await loadDecompressHandlers(),
+});
+const ajv = new Ajv2020({ strict: false, allErrors: true, validateFormats: false });
+const report = { file: path, schemas: {}, messages: 0, invalid: 0, problems: [] };
+const validators = new Map();       // schema id -> validate function
+const problem = (text) => {
+  if (report.problems.length < 50) report.problems.push(text);
+};
+
+for (const [id, schema] of reader.schemasById) {
+  const entry = { encoding: schema.encoding, messages: 0, invalid: 0 };
+  report.schemas[schema.name] = entry;
+  if (schema.encoding !== "jsonschema") {
+    problem(`${schema.name}: schema encoding ${schema.encoding}, not jsonschema`);
+    continue;
+  }
+  let parsed;
+  try {
+    parsed = JSON.parse(new TextDecoder().decode(schema.data));
+  } catch (err) {
+    problem(`${schema.name}: schema is not JSON (${err.message})`);
+    continue;
+  }
+  for (const p of foxgloveProblems(parsed)) problem(`${schema.name}: ${p}`);
+  if (schema.name.startsWith("foxglove.")) {
+    const published = foxgloveSchemas[schema.name.slice("foxglove.".length)];
+    if (!published) problem(`${schema.name}: no such schema in @foxglove/schemas`);
+    else validators.set(`published:${id}`, ajv.compile({ ...published, $id: `published/${schema.name}` }));
+  }
+  try {
+    validators.set(id, ajv.compile({ ...parsed, $id: `bsc/${id}` }));
+  } catch (err) {
+    problem(`${schema.name}: ajv cannot compile it (${err.message})`);
+  }
+}
+
+const channels = reader.channelsById;
+for await (const msg of reader.readMessages()) {
+  report.messages += 1;
+  const channel = channels.get(msg.channelId);
+  const schema = reader.schemasById.get(channel.schemaId);
+  const entry = report.schemas[schema?.name ?? "(no schema)"] ?? (report.schemas["(no schema)"] = { messages: 0, invalid: 0 });
+  entry.messages += 1;
+  let value;
+  try {
+    value = JSON.parse(new TextDecoder().decode(msg.data));
+  } catch (err) {
+    entry.invalid += 1;
+    report.invalid += 1;
+    problem(`${channel.topic} at ${msg.logTime}: not JSON (${err.message})`);
+    continue;
+  }
+  for (const key of [channel.schemaId, `published:${channel.schemaId}`]) {
+    const validate = validators.get(key);
+    if (validate && !validate(value)) {
+      entry.invalid += 1;
+      report.invalid += 1;
+      problem(`${channel.topic} at ${msg.logTime}: ${key === channel.schemaId ? "" : "published schema: "}` +
+              ajv.errorsText(validate.errors));
+    }
+  }
+}
+await fh.close();
+report.ok = report.problems.length === 0 && report.messages > 0;
+console.log(JSON.stringify(report, (k, v) => (typeof v === "bigint" ? Number(v) : v), 1));
+process.exit(report.ok ? 0 : 1);
