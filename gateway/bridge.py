@@ -271,7 +271,7 @@ class GatewayService:
                  health_period_s: float = 0.5, timing: SourceTiming = DEFAULT_TIMING, estimate: bool = True,
                  model_robot=None, layout=None, record=None, publish_samples: bool = True,
                  max_backlog: int = DEFAULT_MAX_BACKLOG, reopen: Callable[[str], can.BusABC] | None = None,
-                 retry_s: float = 0.5, receive: str = "auto"):
+                 retry_s: float = 0.5, receive: str = "auto", log_offset_ns: int = 0):
         if isinstance(robot, wire.WireMap):                # a wire map names a built-in robot
             import robot_description
 
@@ -302,8 +302,9 @@ class GatewayService:
         # the session engine: drivers + estimator, log times, raw frames to the recorder
         channels = {name: getattr(buses[name], "channel", None) for name in wire_map.buses}
         sinks = ([RecorderSink(record, channels=channels, rows=True)] if record is not None else []) + [_Publish(self)]
+        # log_offset_ns: added to frame times to make log times (frames stamped with simulated time)
         self.engine = Session(robot, sinks, model_robot=model_robot, layout=layout, fd=fd, estimate=estimate,
-                              timing=timing)
+                              timing=timing, log_offset_ns=log_offset_ns)
         self.max_backlog = max_backlog
         self.resume_backlog = int(max_backlog * RESUME_FRACTION)
         self.retry_s = float(retry_s)

@@ -182,6 +182,9 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
     prefix = f"bsc-demo-{uuid.uuid4().hex[:8]}"
     info: dict = {"zenoh_endpoint": ep, "can": f"virtual, channels {prefix}-<bus>"}
     rec = None
+    # the firmware stamps frames with simulated time from 0: the log's times are the wall clock of
+    # this run (messages, metadata and attachments on one base, as a real robot's session)
+    wall0 = time.time_ns()
     if record is not None:
         rec = Recorder(record)
         from gateway.replay import session_context
@@ -207,7 +210,8 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
                 raise RuntimeError("the demo's zenoh subscription never reached the gateway's session")
             layout = ThrusterLayout.from_config(scenario.cfg.thrusters)
             counting = {name: _CountingBus(bus, name, frames) for name, bus in tx.items()}
-            with GatewayService(robot, rx, gw_session, layout=layout, record=rec, publish_samples=True) as gw:
+            with GatewayService(robot, rx, gw_session, layout=layout, record=rec, publish_samples=True,
+                                log_offset_ns=wall0) as gw:
                 states = [(b, gw.bus_state[name]) for name, b in counting.items()]
                 marks = {name: 0 for name in counting}
 

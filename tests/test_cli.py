@@ -55,3 +55,33 @@ def test_demo_exit_status_tells_ci_a_target_was_missed(tmp_path, capsys):
     assert main(run + ["--report-only", "--out", str(tmp_path / "reported")]) == 0
     assert "SOME TARGETS MISSED (--report-only: exit status 0)" in capsys.readouterr().out
     assert "3  the run completed" in bsc("demo", "--help").stdout
+
+
+def test_a_demo_session_is_dated_by_the_wall_clock_of_its_run(tmp_path):
+    """The firmware stamps frames with simulated time from 0; the recorded session's messages,
+    attachments and metadata all carry the wall clock of the run (Foxglove's timeline shows the
+    day it ran, not 1970), and the frames keep their own (simulated) times inside."""
+    import datetime
+    import time
+
+    from gateway import mcaplog
+
+    before = time.time_ns()
+    r = bsc("demo", "--duration", "0.3", "--no-sweep", "--report-only", "--quiet", "--out", str(tmp_path / "d"))
+    after = time.time_ns()
+    assert r.returncode == 0, r.stderr
+    path = tmp_path / "d" / "session.mcap"
+    times, frame_t = [], []
+
+    def on_message(channel, msg):
+        times.append(msg.log_time)
+        if channel.topic.startswith("/can/"):
+            frame_t.append(json.loads(msg.data)["t_ns"])
+
+    res = mcaplog.scan(path, on_message=on_message)
+    assert len(times) > 1000 and before <= min(times) and max(times) <= after
+    assert min(frame_t) < 10**9                                    # the frames' own simulated times
+    assert res.attachments and all(before <= a.log_time <= after for a in res.attachments)
+    start = next(m for m in res.metadata if m.name == "bsc.recording").metadata["session_start_utc"]
+    t = datetime.datetime.fromisoformat(start.replace("Z", "+00:00")).timestamp() * 1e9
+    assert before - 2e9 <= t <= after
