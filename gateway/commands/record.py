@@ -86,6 +86,7 @@ class Recording:
         self._subscriber = None
         self._closed = False
         self._declared = False
+        self._log_declared = False          # the foxglove.Log topic of alerts
 
     def start(self) -> "Recording":
         import can
@@ -135,6 +136,7 @@ class Recording:
     def on_payload(self, key: str, payload: bytes) -> None:
         """Record one zenoh payload published on ``key``."""
         from gateway import codec
+        from gateway.efforts import Alert
 
         try:
             obj = codec.decode(payload)
@@ -146,11 +148,22 @@ class Recording:
         except (TypeError, ValueError) as exc:     # another type already on this key, bad time
             self._reject(key, payload, "type_conflict", exc)
             return
+        if ok and isinstance(obj, Alert):          # also as a foxglove.Log line (Foxglove's Log panel)
+            ok = self._log_alert(obj)
         with self._lock:
             if ok:
                 self.samples[type(obj).__name__] += 1
             else:
                 self.refused += 1
+
+    def _log_alert(self, alert) -> bool:
+        from gateway.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA, alert_log
+
+        with self._lock:
+            if not self._log_declared:
+                self.recorder.add_channel(ALERT_LOG_TOPIC, LOG_SCHEMA)
+                self._log_declared = True
+        return self.recorder.record(ALERT_LOG_TOPIC, alert_log(alert), log_time_ns=alert.t_ns)
 
     def _reject(self, key: str, payload: bytes, reason: str, exc: Exception) -> None:
         ok = self.recorder.record(REJECTED_TOPIC, {

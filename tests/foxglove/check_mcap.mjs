@@ -1,8 +1,8 @@
 // Reads an MCAP log with Foxglove's own MCAP library (@mcap/core, indexed reader) and checks what
 // Foxglove needs of it:
 //  - every schema is JSON Schema that Foxglove's loader takes: "$schema" declared, one scalar
-//    "type" per field (no ["string","null"] unions, no anyOf/oneOf), no arrays of arrays, no
-//    tuple items (prefixItems, items given as a list);
+//    "type" per field (no ["string","null"] unions, no anyOf/oneOf but an enum's consts), no
+//    arrays of arrays, no tuple items (prefixItems, items given as a list);
 //  - every message is JSON (no NaN/Infinity tokens) and validates against its channel's schema
 //    (ajv, draft 2020-12);
 //  - the foxglove.* schemas (well-known, with a panel of their own) are the published ones
@@ -34,7 +34,11 @@ function foxgloveProblems(schema) {
     }
     if (node === null || typeof node !== "object") return;
     if (Array.isArray(node.type)) problems.push(`${where}: a union type ${JSON.stringify(node.type)}`);
-    if ("anyOf" in node || "oneOf" in node) problems.push(`${where}: anyOf/oneOf`);
+    for (const k of ["anyOf", "oneOf"]) {      // an enum as oneOf of consts (Foxglove's own form) is fine
+      if (k in node && !(Array.isArray(node[k]) && node[k].every((alt) => alt && "const" in alt))) {
+        problems.push(`${where}: ${k} (a union)`);
+      }
+    }
     if (node.type === "array") {
       if ("prefixItems" in node || Array.isArray(node.items)) problems.push(`${where}: tuple items`);
       else if (node.items && node.items.type === "array") problems.push(`${where}: an array of arrays`);

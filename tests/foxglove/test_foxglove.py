@@ -74,7 +74,11 @@ def test_a_replay_output(session, tmp_path):
 def test_the_records_with_named_counts_alerts_and_odd_channels(tmp_path):
     """Health with rejections and nodes, an alert with evidence, frames whose python-can channel
     is none, an integer or text, a plain dict record: each in the form Foxglove takes."""
+    import dataclasses
+
     from drivers.samples import BusHealth, DeviceHealth
+    from gateway import codec
+    from gateway.commands.record import Recording
     from gateway.efforts import Alert
     from gateway.recorder import Recorder
 
@@ -85,11 +89,14 @@ def test_the_records_with_named_counts_alerts_and_odd_channels(tmp_path):
         rec.record("bsc/r/health/bus/arm0", BusHealth("arm0", 5, 9, (("unknown_id", 2),), 0.4, (("ft", 5),)))
         alert = Alert("r", "sensor", "imu", "sensor-stale", "critical", "raised", 5, 7,
                       "sensor imu: staleness_s = 0.7 > 0.5", (("staleness_s", 0.7), ("raise", 0.5)))
-        rec.record("bsc/r/alerts", alert, log_time_ns=7)
+        recording = Recording(rec, {}, None, None)          # bsc record's path: also a foxglove.Log line
+        recording.on_payload("bsc/r/alerts", codec.encode(alert))
+        recording.on_payload("bsc/r/alerts", codec.encode(dataclasses.replace(alert, state="cleared", t_ns=9)))
         for i, ch in enumerate((None, 0, "can0", ["a", "list"])):
             rec.record_can("arm0", can.Message(timestamp=1 + i, arbitration_id=0x100 + i, data=b"\x01\x02",
                                                channel=ch))
         rec.record("bsc/r/note", {"text": "free-form", "n": 3}, log_time_ns=9)
     report = check(path)
-    assert report["schemas"]["gateway.efforts.Alert"]["messages"] == 1
+    assert report["schemas"]["gateway.efforts.Alert"]["messages"] == 2
+    assert report["schemas"]["foxglove.Log"]["messages"] == 2        # checked against the published schema too
     assert report["schemas"]["bsc.CanFrame"]["messages"] == 4

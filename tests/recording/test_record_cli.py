@@ -3,6 +3,7 @@ clean stop on SIGTERM; one-line errors."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import os
 import signal
@@ -239,3 +240,27 @@ def test_a_full_disk_stops_the_recording_at_once_with_one_error(tmp_path):
         assert got == fixed.messages == in_file > 100, (got, fixed.messages, in_file)
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_an_alert_is_also_recorded_as_a_foxglove_log_line(tmp_path):
+    """Foxglove's Log panel takes foxglove.Log on any topic: each alert bsc record receives is
+    recorded as itself and as a log line at its severity's level (a cleared one at info)."""
+    from gateway.efforts import Alert
+    from gateway.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA_NAME
+
+    path = tmp_path / "a.mcap"
+    alert = Alert(ROBOT, "actuator", "arm0/j2", "joint-friction-high", "critical", "raised", 1_000, 2_500_000_001,
+                  "friction 182 N m > 150", (("friction_nm", 182.0),))
+    with Recorder(path) as rec:
+        recording = Recording(rec, {}, None, None)
+        for a in (alert, dataclasses.replace(alert, state="cleared", t_ns=3_000_000_000)):
+            recording.on_payload(keys.alerts(ROBOT), codec.encode(a))
+    logs = list(mcaplog.read_messages(path, [ALERT_LOG_TOPIC]))
+    assert [m.schema_name for m in logs] == [LOG_SCHEMA_NAME] * 2
+    assert [m.log_time_ns for m in logs] == [2_500_000_001, 3_000_000_000] and logs[1].data["level"] == 2
+    first = logs[0].data
+    assert first["timestamp"] == {"sec": 2, "nsec": 500_000_001} and first["level"] == 4
+    assert first["name"] == f"bsc/{ROBOT}/actuator/arm0/j2 [joint-friction-high]"
+    assert first["message"] == "raised critical: friction 182 N m > 150"
+    alerts = list(mcaplog.read_messages(path, [keys.alerts(ROBOT)]))
+    assert len(alerts) == len(logs)
