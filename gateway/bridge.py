@@ -329,6 +329,7 @@ class GatewayService:
         self._worker: threading.Thread | None = None
         self._supervisor: threading.Thread | None = None
         self._publishers: dict[str, object] = {}
+        self._schemas = None                     # the queryable that serves the payload schemas
         self._lock = threading.Lock()            # the pipeline is used by the worker and by health ticks
         self._closed = False
         self._publishing = True          # until close() has flushed the estimator's last epochs
@@ -342,6 +343,8 @@ class GatewayService:
         if self._closed:
             raise GatewayError("the gateway service is closed")
         if self._worker is None:
+            # the schema of every payload, queryable (bsc/<robot>/schemas/<Type>)
+            self._schemas = codec.serve_schemas(self.session, self.robot)
             for name in self.wire.buses:
                 self.bus_state[name].rcvbuf = deepen_receive_buffer(self.buses[name])
             if self.receive == "direct":
@@ -419,6 +422,9 @@ class GatewayService:
         with self._lock:
             self._publishing = False     # the worker's final flush above was still published
             pubs, self._publishers = list(self._publishers.values()), {}
+        if self._schemas is not None:
+            pubs.append(self._schemas)
+            self._schemas = None
         for p in pubs:
             try:
                 p.undeclare()

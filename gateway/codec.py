@@ -39,7 +39,8 @@ def declare_publisher(session, key: str):
     import zenoh
 
     cc = zenoh.CongestionControl.DROP if "/sensors/" in key else zenoh.CongestionControl.BLOCK
-    return session.declare_publisher(key, congestion_control=cc, express=cc == zenoh.CongestionControl.BLOCK)
+    return session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON, congestion_control=cc,
+                                     express=cc == zenoh.CongestionControl.BLOCK)
 
 
 def wait_for_subscriber(session, key: str, timeout_s: float = 10.0) -> bool:
@@ -65,6 +66,58 @@ def put(publisher, payload: bytes) -> None:
 
 class CodecError(ValueError):
     """A payload that is not a valid encoded sample."""
+
+
+# --- schemas, queryable on zenoh --------------------------------------------------------------------
+
+SCHEMA_ENCODING = "application/schema+json"
+
+
+def payload_schema(cls: type) -> dict:
+    """The JSON schema (draft 2020-12) of ``cls``'s payloads as :func:`encode` writes them: the
+    dataclass's fields and the ``type`` and ``v`` of the envelope."""
+    from gateway.recorder import JSON_SCHEMA_DIALECT, json_schema_for
+
+    s = json_schema_for(cls)
+    s["properties"] = {"type": {"const": cls.__name__}, "v": {"const": VERSION}, **s["properties"]}
+    s["required"] = ["type", "v", *s["required"]]
+    return {"$schema": JSON_SCHEMA_DIALECT, **s}
+
+
+def serve_schemas(session, robot: str):
+    """Declare the queryable that answers ``bsc/<robot>/schemas/<Type>`` with the schema of every
+    payload type a query's key expression matches (a client in any language can discover and
+    decode what bsc publishes: ``get bsc/<robot>/schemas/**``). Returns the queryable (undeclare
+    it when done)."""
+    import zenoh
+
+    from gateway import keys
+
+    replies = [(zenoh.KeyExpr(keys.schema(robot, name)), json.dumps(payload_schema(cls)).encode())
+               for name, cls in TYPES.items()]
+    encoding = zenoh.Encoding(SCHEMA_ENCODING)
+
+    def answer(query) -> None:
+        try:
+            for key, body in replies:
+                if key.intersects(query.key_expr):
+                    query.reply(key, body, encoding=encoding)
+        except Exception:  # noqa: BLE001 - a failing reply must not take the session's thread down
+            pass
+
+    return session.declare_queryable(keys.schemas(robot), answer)
+
+
+def fetch_schemas(session, robot: str, timeout_s: float = 5.0) -> dict[str, dict]:
+    """``{type name: schema}`` of every payload type the gateways of ``robot`` serve."""
+    from gateway import keys
+
+    out = {}
+    for reply in session.get(keys.schemas(robot), timeout=timeout_s):
+        ok = getattr(reply, "ok", None)
+        if ok is not None:
+            out[str(ok.key_expr).rsplit("/", 1)[1]] = json.loads(ok.payload.to_bytes())
+    return out
 
 
 _FIELDS: dict[type, tuple[str, ...]] = {t: tuple(f.name for f in dataclasses.fields(t)) for t in TYPES.values()}

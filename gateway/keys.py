@@ -97,6 +97,15 @@ def alerts(robot: str) -> str:
     return f"{robot_root(robot)}/alerts"
 
 
+def schema(robot: str, type_name: str) -> str:
+    """The JSON schema of payload type ``type_name`` (``JointEfforts``, ...), queryable."""
+    return f"{robot_root(robot)}/schemas/{type_name}"
+
+
+def schemas(robot: str) -> str:
+    return f"{robot_root(robot)}/schemas/**"
+
+
 def efforts(robot: str) -> str:
     return f"{robot_root(robot)}/efforts/**"
 

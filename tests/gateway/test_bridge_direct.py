@@ -304,3 +304,46 @@ def test_direct_mode_recording_replays_to_the_same_efforts(sessions, rig, tmp_pa
     live = efforts(path)
     assert len(live) == 3 * 300 and report.frames_in == sum(rig.sent.values())
     assert efforts(tmp_path / "out" / OUTPUT_NAME) == live
+
+
+def test_payloads_declare_their_encoding_and_their_schemas_are_queryable(sessions, rig):  # noqa: F811
+    """A client that knows nothing of bsc finds every payload type's JSON schema on zenoh
+    (bsc/<robot>/schemas/<Type>, application/schema+json), and what the gateway publishes is
+    application/json that validates against the schema its "type" names."""
+    import json
+
+    import jsonschema
+
+    from gateway import codec
+
+    pub_s, sub_s = sessions
+    name = rig.robot.name
+    got = []
+    done = threading.Event()
+
+    def on_sample(s):
+        got.append((str(s.encoding), json.loads(s.payload.to_bytes())))
+        if {p["type"] for _, p in got} >= {"JointEfforts", "ThrusterEffort", "WrenchSample", "BusHealth"}:
+            done.set()
+
+    sub = sub_s.declare_subscriber(keys.everything(name), on_sample)
+    try:
+        subscribed(pub_s, keys.everything(name))
+        with GatewayService(rig.robot, rig.rx, pub_s) as gw:
+            schemas = codec.fetch_schemas(sub_s, name)
+            assert set(schemas) == set(codec.TYPES)
+            one = list(sub_s.get(keys.schema(name, "JointEfforts"), timeout=5.0))
+            assert len(one) == 1 and str(one[0].ok.encoding).startswith("application/schema+json")
+            rig.steps(60)
+            wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
+            assert gw.drain(WAIT_S)
+            gw.publish_health()
+            assert done.wait(WAIT_S), {p["type"] for _, p in got}
+    finally:
+        sub.undeclare()
+    for encoding, payload in got:
+        assert encoding.startswith("application/json"), encoding
+        jsonschema.Draft202012Validator(schemas[payload["type"]]).validate(payload)
+    bad = dict(got[0][1], t_ns="soon")
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.Draft202012Validator(schemas[bad["type"]]).validate(bad)

@@ -17,6 +17,7 @@ import json
 import shutil
 import subprocess
 import threading
+import time
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
@@ -249,3 +250,28 @@ def test_deployment_files_are_strict():
         assert c["transport"]["auth"]["usrpwd"]["user"] == f"bsc-{role}"
     users = {line.split(":", 1)[0] for line in (DEPLOY / "credentials.example.txt").read_text().split()}
     assert users == {"bsc-gateway", "bsc-controller", "bsc-observer"}
+
+
+@needs_openssl
+def test_schemas_are_served_by_the_gateway_only(pki):
+    """Through the secured router every role reads the payload schemas the gateway serves; a role
+    that is not the gateway cannot answer on the schema keys (its queryable is refused)."""
+    from gateway import codec
+
+    with running_router(pki) as ep, ExitStack() as stack:
+        gw = stack.enter_context(zenoh.open(client_config(pki, ep, "gateway")))
+        stack.callback(codec.serve_schemas(gw, ROBOT).undeclare)
+        for who in ("observer", "controller"):
+            s = stack.enter_context(zenoh.open(client_config(pki, ep, who)))
+            deadline = time.monotonic() + WAIT_S
+            got = {}
+            while set(got) != set(codec.TYPES) and time.monotonic() < deadline:
+                got = codec.fetch_schemas(s, ROBOT, timeout_s=1.0)   # the declaration may still be on its way
+            assert set(got) == set(codec.TYPES), who
+        fake = stack.enter_context(zenoh.open(client_config(pki, ep, "observer")))
+        stack.callback(fake.declare_queryable(f"bsc/{ROBOT}/schemas/Forged",
+                                              lambda q: q.reply(f"bsc/{ROBOT}/schemas/Forged", b"{}")).undeclare)
+        asker = stack.enter_context(zenoh.open(client_config(pki, ep, "controller")))
+        names = {str(r.ok.key_expr).rsplit("/", 1)[1] for r in asker.get(f"bsc/{ROBOT}/schemas/**", timeout=2.0)
+                 if getattr(r, "ok", None) is not None}
+        assert names == set(codec.TYPES)              # the real ones, never the forged one
