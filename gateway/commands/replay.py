@@ -19,7 +19,8 @@ import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="MCAP log written by bsc record / the gateway")
+    parser.add_argument("file", help="MCAP log written by bsc record / the gateway, or a CAN log (.log candump, "
+                                     ".asc, .blf, .trc, .csv, .gz of them: needs --robot, and --bus)")
     mode = parser.add_argument_group("mode (exactly one)")
     mode.add_argument("--out", "-o", metavar="DIR",
                       help="offline: replay through drivers + estimator into DIR")
@@ -54,7 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="live playback (--interface, --zenoh): " + RT_PRIORITY_HELP)
     off = parser.add_argument_group("offline")
     off.add_argument("--robot", default=None, metavar="NAME|FILE",
-                     help="robot description (default: the log's robot.urdf attachment)")
+                     help="robot description (default: the log's robot.urdf attachment; required for a CAN log)")
+    from gateway.commands.import_log import BUS_HELP
+
+    off.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL", help="a CAN log: " + BUS_HELP)
     off.add_argument("--model", default=None, metavar="NAME|FILE",
                      help="the estimator's robot model, if not the robot's own")
     off.add_argument("--copy-can", action="store_true",
@@ -78,6 +82,14 @@ def _warn(text: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from gateway.engine.canlog import is_can_log
+
+    if is_can_log(args.file):
+        from gateway.commands.import_log import replay_can_log
+
+        return replay_can_log(args, run)
+    if args.bus:
+        raise ValueError("--bus maps the channels of a CAN log (.log, .asc, .blf, .trc, .csv); an MCAP log has buses")
     from gateway.cli import UserError
     from gateway.replay import parse_can_ids
 

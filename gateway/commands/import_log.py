@@ -1,0 +1,97 @@
+"""``bsc import FILE --robot R --bus BUS=CHANNEL ... -o session.mcap``: a CAN log of another
+tool (candump -L .log, Vector .asc/.blf, PEAK .trc, python-can .csv, or .gz of them) as a
+session MCAP, which everything else takes: ``bsc info``, ``bsc replay``, ``bsc analyze``,
+Foxglove.
+
+The frames keep the file's order and their own times (to the microsecond); the robot's URDF and
+DBCs are attached. ``bsc replay`` and ``bsc analyze`` take the same logs directly (they import
+into a temporary file first).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+BUS_HELP = ("map the log's channel CHANNEL to the robot's bus BUS (repeatable, e.g. --bus arm0=can0 "
+            "--bus arm1=can1 --bus spacecraft=can2; ASC/BLF/TRC channels are numbers from 1, CSV's is -); "
+            "default: channels named as the buses")
+
+
+def add_log_arguments(group, *, robot: bool = True) -> None:
+    """``--robot`` (when ``robot``) and ``--bus`` for a command that reads CAN logs."""
+    if robot:
+        group.add_argument("--robot", default=None, metavar="NAME|FILE.urdf",
+                           help="the robot of the log (required: a CAN log names none)")
+    group.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL", help=BUS_HELP)
+    group.add_argument("--fd", action="store_true", help="the buses are CAN FD")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", help="CAN log: .log (candump -L), .asc, .blf, .trc, .csv, or .gz of them")
+    parser.add_argument("--output", "-o", required=True, metavar="FILE.mcap", help="the session MCAP to write")
+    add_log_arguments(parser)
+    parser.add_argument("--force", action="store_true", help="replace the output if it exists")
+
+
+def warn(command: str):
+    def _warn(text: str) -> None:
+        print(f"bsc {command}: warning: {text}", file=sys.stderr, flush=True)
+    return _warn
+
+
+def load(file, robot: str | None, buses: list[str]):
+    """(robot, bus map) of a CAN log's import, checked."""
+    from drivers.wire import WireMap
+    from gateway.engine import canlog
+
+    rob = canlog.robot_for_log(robot, file)
+    return rob, canlog.parse_bus_map(buses, list(WireMap.from_robot(rob).buses))
+
+
+def summary(stats) -> str:
+    span = (stats.last_ns - stats.first_ns) / 1e9 if stats.first_ns is not None else 0.0
+    return (f"{stats.frames_written} of {stats.frames_read} frames ({stats.format}), {span:.3f} s; "
+            "channels " + ", ".join(f"{c}->{b}" for c, b in stats.channels.items()))
+
+
+def run(args: argparse.Namespace) -> int:
+    from gateway.engine import canlog
+
+    if not canlog.is_can_log(args.file):
+        raise canlog.CanLogError(f"{args.file}: not a CAN log by its name (use {', '.join(canlog.FORMATS)}, "
+                                 "or .gz of them); an MCAP log needs no import")
+    if Path(args.output).suffix.lower() != ".mcap":
+        raise canlog.CanLogError(f"--output {args.output}: name it .mcap")
+    rob, bus_map = load(args.file, args.robot, args.bus)
+    stats = canlog.import_log(args.file, args.output, rob, bus_map=bus_map, fd=args.fd, overwrite=args.force)
+    canlog.warn_lines(stats, warn("import"))
+    print(f"bsc import: {summary(stats)}")
+    print(f"bsc import: wrote {args.output}")
+    return 0
+
+
+def replay_can_log(args: argparse.Namespace, run) -> int:
+    """``bsc replay LOG ...`` of a CAN log: imported into a temporary MCAP, then ``run`` (the
+    replay of an MCAP log) on it; ``report.json`` says what the import read and left out."""
+    import json
+    import os
+
+    from gateway.engine import canlog
+
+    rob, bus_map = load(args.file, args.robot, args.bus)
+    source = args.file
+    with canlog.imported(source, rob, bus_map=bus_map, fd=args.fd) as (mcap, stats):
+        canlog.warn_lines(stats, warn("replay"))
+        print(f"bsc replay: imported {summary(stats)}")
+        args.file, args.robot, args.bus = str(mcap), None, []
+        rc = run(args)
+    if args.out is not None:
+        report = Path(args.out) / "report.json"
+        doc = json.loads(report.read_text())
+        doc["source"] = str(source)
+        doc["import"] = stats.to_json()
+        tmp = report.with_name(f".{report.name}.tmp")
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")
+        os.replace(tmp, report)
+    return rc
