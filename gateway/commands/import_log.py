@@ -95,3 +95,55 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
         os.replace(tmp, report)
     return rc
+
+
+def first_time_ns(path) -> int:
+    """The log time of a CAN log's first frame (for ordering sessions); -1 when none."""
+    from gateway.engine import canlog
+
+    try:
+        return next((t for _, t, _ in canlog.read_log(path)), -1)
+    except (canlog.CanLogError, OSError):
+        return -1
+
+
+def analyze_logs(paths, args: argparse.Namespace, tmp: Path) -> tuple[list[str], list[str]]:
+    """``bsc analyze`` of CAN logs: ``paths`` with every CAN log (given, or below a given
+    folder) replaced by its offline replay in ``tmp`` (the efforts analyze reads), and the
+    logs that could not be replayed, each with why.
+
+    The replays are made in the order of the logs' first frames, which is the order analyze
+    then takes them in (by the replay's recording start, then by path)."""
+    from gateway.engine import canlog
+    from gateway.replay import replay_offline
+
+    rest, logs, given = [], [], set()
+    for p in map(Path, paths):
+        if p.is_dir():
+            rest.append(str(p))
+            logs += sorted(q for q in p.rglob("*") if q.is_file() and canlog.is_can_log(q))
+        elif canlog.is_can_log(p):
+            logs.append(p)
+            given.add(p)
+        else:
+            rest.append(str(p))
+    if not logs:
+        return rest, []
+    rob, bus_map = load(logs[0], args.robot, args.bus)
+    out, skipped = [], []
+    for i, log in enumerate(sorted(dict.fromkeys(logs), key=lambda q: (first_time_ns(q), str(q)))):
+        try:
+            with canlog.imported(log, rob, bus_map=bus_map, fd=args.fd) as (mcap, stats):
+                for line in stats.warnings():
+                    print(f"bsc analyze: {log}: {line}", file=sys.stderr)
+                d = tmp / f"{i:05d}"
+                replay_offline(mcap, d, robot=None)
+        except (ValueError, OSError) as exc:
+            if log in given:
+                raise
+            skipped.append(str(exc) if str(log) in str(exc) else f"{log}: {exc}")
+            continue
+        named = d / f"{log.name}.mcap"        # the session's name; its folder sorts as its time does
+        (d / "replay.mcap").rename(named)
+        out.append(str(named))
+    return rest + out, skipped

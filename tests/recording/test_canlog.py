@@ -220,3 +220,37 @@ def test_an_mcap_named_log_is_an_mcap(tmp_path):
     with Recorder(path):
         pass
     assert canlog.log_format(path) is None and canlog.log_format(tmp_path / "y.asc.gz") == ".asc"
+
+
+def test_analyze_takes_logs_and_folders_of_them(candump, session, tmp_path, capsys):
+    import argparse
+
+    from gateway.analysis import analyze_session
+    from gateway.commands.import_log import analyze_logs
+
+    _, _ = replay(tmp_path, "ref", session)
+    ref = analyze_session(tmp_path / "ref" / "replay.mcap").to_json()
+    args = argparse.Namespace(robot="paper_robot", bus=MAP[1::2], fd=False)
+    work = tmp_path / "work"
+    work.mkdir()
+    (paths, skipped) = analyze_logs([str(candump)], args, work)
+    got = analyze_session(paths[0]).to_json()
+    assert skipped == []
+    def same(d):                              # NaN (not identifiable) as text: NaN != NaN
+        return json.dumps({k: v for k, v in d.items() if k not in ("path", "name", "metadata")}, sort_keys=True)
+
+    assert same(got) == same(ref) and got["counts"]["joint_efforts"] > 0
+    # a folder: logs in the order of their first frame, whatever their names; a text file
+    # named .log that is no CAN log is skipped with its reason
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    late = [ln for ln in candump.read_text().splitlines()]
+    shifted = [f"({float(ln[1:ln.index(')')]) + 86400:.6f}){ln[ln.index(')') + 1:]}" for ln in late]
+    (folder / "a_late.log").write_text("\n".join(shifted) + "\n")
+    (folder / "b_early.log").write_text(candump.read_text())
+    (folder / "gateway.log").write_text("INFO started\n")
+    capsys.readouterr()
+    assert main(["analyze", str(folder), "--robot", "paper_robot", *MAP, "--workers", "1", "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert "2 session(s), in time order: b_early.log .. a_late.log" in out, out
+    assert "skipped" in err and "gateway.log" in err
