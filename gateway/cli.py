@@ -86,4 +86,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # ``python -m gateway.cli``: this file runs as __main__, a second copy of the module whose
+    # UserError the commands (importing gateway.cli) do not raise; use the one they import
+    from gateway.cli import main as _main
+
+    raise SystemExit(_main())
