@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "(repeatable; buses not named are not played)")
     can_g.add_argument("--fd", action="store_true",
                        help="CAN FD buses (default: as the log says)")
+    from gateway.canbus import add_bus_arguments
+
+    add_bus_arguments(can_g)
     sel = parser.add_argument_group("selection and timing")
     sel.add_argument("--rate", "-r", type=float, default=1.0, metavar="R",
                      help="playback speed factor (default 1; 0 = as fast as possible)")
@@ -104,6 +107,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
+    from gateway.canbus import check_interface
+
+    check_interface(args)
     can_ids = parse_can_ids(args.can_id) if args.can_id else None
     from gateway.commands import check_rt_priority
 
@@ -162,7 +168,10 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
         with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
             ctx = read_context(src)
             chans = channels(args.channel, list(ctx.buses), every=False)
-            buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd)
+            from gateway.canbus import BusOptions
+
+            buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd,
+                             options=BusOptions.from_args(args))
             set_rt_priority(args.rt_priority)
             stats = play_can(src, buses, rate=args.rate, loop=args.loop, start_s=args.start,
                              duration_s=args.duration, can_ids=can_ids,
