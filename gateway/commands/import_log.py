@@ -50,8 +50,7 @@ def load(file, robot: str | None, buses: list[str]):
 
 
 def summary(stats) -> str:
-    span = (stats.last_ns - stats.first_ns) / 1e9 if stats.first_ns is not None else 0.0
-    return (f"{stats.frames_written} of {stats.frames_read} frames ({stats.format}), {span:.3f} s; "
+    return (f"{stats.frames_written} of {stats.frames_read} frames ({stats.format}), {stats.span_s:.3f} s; "
             "channels " + ", ".join(f"{c}->{b}" for c, b in stats.channels.items()))
 
 

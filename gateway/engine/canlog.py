@@ -107,8 +107,17 @@ class ImportStats:
     error_frames: int = 0
     remote_frames: int = 0
     ended_early: str | None = None                                       # why reading stopped early
+    bad_lines: int = 0                                                   # candump lines that are no frame
+    first_bad_line: str | None = None
     first_ns: int | None = None
     last_ns: int | None = None
+    min_ns: int | None = None
+    max_ns: int | None = None
+
+    @property
+    def span_s(self) -> float:
+        """Seconds from the earliest to the latest frame written."""
+        return 0.0 if self.min_ns is None else (self.max_ns - self.min_ns) / 1e9
 
     def found(self) -> str:
         """The channels the file holds, with their frame counts."""
@@ -128,6 +137,8 @@ class ImportStats:
         if self.error_frames or self.remote_frames:
             out.append(f"{self.error_frames} error frames, {self.remote_frames} remote frames "
                        "(recorded; the drivers reject and count them)")
+        if self.bad_lines:
+            out.append(f"{self.bad_lines} lines that are no frame, skipped (first: {self.first_bad_line})")
         if self.ended_early:
             out.append(f"the file ends early ({self.ended_early}); the {self.frames_read} frames "
                        "before it were read")
@@ -155,6 +166,9 @@ def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None
                           f"{', '.join(FORMATS)}, or .gz of them)")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
+    if fmt == ".log":
+        yield from _read_candump(path, stats)
+        return
     n = 0
     try:
         if fmt == ".asc":           # absolute times (python-can's LogReader drops the option for .gz)
@@ -192,6 +206,63 @@ def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None
             reader.stop()
 
 
+class _Lines:
+    """A text file's lines for python-can's candump reader: counts them, and turns an error of
+    the file itself (a cut .gz) into its end, kept in :attr:`error`."""
+
+    def __init__(self, f):
+        self.f, self.n, self.last, self.error = f, 0, "", None
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> str:
+        try:
+            line = next(self.f)
+        except StopIteration:
+            raise
+        except Exception as exc:  # noqa: BLE001 - EOFError, zlib.error, UnicodeDecodeError...
+            self.error = f"{type(exc).__name__}: {exc}"
+            raise StopIteration from None
+        self.n += 1
+        self.last = line
+        return line
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def _read_candump(path: Path, stats: ImportStats | None) -> Iterator[tuple[str, int, Any]]:
+    """:func:`read_log` of a candump log: a line that is no frame is skipped and counted
+    (``stats.bad_lines``; python-can's reader stops at the first), the rest is read."""
+    import gzip
+
+    import can
+
+    opener = gzip.open if path.suffix.lower() == ".gz" else open
+    n = 0
+    with opener(path, "rt", errors="replace") as f:
+        lines = _Lines(f)
+        while True:
+            try:
+                for msg in can.CanutilsLogReader(lines):
+                    n += 1
+                    yield channel_label(msg.channel, ".log"), round(msg.timestamp * 1e6) * 1000, msg
+                break
+            except Exception as exc:  # noqa: BLE001 - a line that is no frame: skip it, go on
+                if stats is not None:
+                    stats.bad_lines += 1
+                    if stats.first_bad_line is None:
+                        stats.first_bad_line = f"line {lines.n}: {lines.last.strip()[:80]!r} ({type(exc).__name__})"
+    if lines.error is not None:
+        if n == 0:
+            raise CanLogError(f"{path}: not a readable {FORMATS['.log']} file ({lines.error})")
+        if stats is not None:
+            stats.ended_early = f"after frame {n}: {lines.error}"
+    elif n == 0 and lines.n and stats is not None and stats.bad_lines == lines.n:
+        raise CanLogError(f"{path}: not a {FORMATS['.log']} file ({stats.first_bad_line})")
+
+
 def import_frames(path: str | os.PathLike[str], buses: Sequence[str], bus_map: Mapping[str, str],
                   stats: ImportStats) -> Iterator[tuple[str, int, Any]]:
     """``(bus, t_ns, can.Message)`` of the frames of ``path`` whose channel maps to a bus, in
@@ -219,6 +290,8 @@ def import_frames(path: str | os.PathLike[str], buses: Sequence[str], bus_map: M
         stats.frames_written += 1
         stats.first_ns = t if stats.first_ns is None else stats.first_ns
         stats.last_ns = t
+        stats.min_ns = t if stats.min_ns is None or t < stats.min_ns else stats.min_ns
+        stats.max_ns = t if stats.max_ns is None or t > stats.max_ns else stats.max_ns
         yield bus, t, msg
 
 

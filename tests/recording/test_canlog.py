@@ -254,3 +254,22 @@ def test_analyze_takes_logs_and_folders_of_them(candump, session, tmp_path, caps
     out, err = capsys.readouterr()
     assert "2 session(s), in time order: b_early.log .. a_late.log" in out, out
     assert "skipped" in err and "gateway.log" in err
+
+
+def test_candump_lines_that_are_no_frame_are_skipped_and_counted(candump, tmp_path, capsys):
+    lines = candump.read_text().splitlines()
+    mid = tmp_path / "mid.log"
+    mid.write_text("\n".join(lines[:1000] + ["garbage here", "(1767225600.5) can0 XYZ"] + lines[1000:]) + "\n")
+    cut = tmp_path / "cut.log"
+    cut.write_text("\n".join(lines[:2000]) + "\n" + lines[2000][:9])          # the logger was killed
+    ref, _ = replay(tmp_path, "ref", candump, "--robot", "paper_robot", *MAP)
+    got, report = replay(tmp_path, "mid", mid, "--robot", "paper_robot", *MAP)
+    assert got == ref and report["import"]["bad_lines"] == 2
+    assert report["import"]["first_bad_line"].startswith("line 1001: 'garbage here'")
+    _, report = replay(tmp_path, "cut", cut, "--robot", "paper_robot", *MAP)
+    assert report["frames_in"] == 2000 and report["import"]["bad_lines"] == 1
+    gz = tmp_path / "cut.log.gz"
+    gz.write_bytes(gzip.compress(candump.read_bytes())[:20000])
+    _, report = replay(tmp_path, "gz", gz, "--robot", "paper_robot", *MAP)
+    assert "EOFError" in report["import"]["ended_early"] and 0 < report["frames_in"] < len(lines)
+    assert "Traceback" not in capsys.readouterr().err
