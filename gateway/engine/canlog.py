@@ -247,6 +247,9 @@ def _read_candump(path: Path, stats: ImportStats | None) -> Iterator[tuple[str, 
             try:
                 for msg in can.CanutilsLogReader(lines):
                     n += 1
+                    if msg.channel is None and msg.is_error_frame:     # python-can leaves it out
+                        parts = lines.last.split()
+                        msg.channel = parts[1] if len(parts) > 1 else None
                     yield channel_label(msg.channel, ".log"), round(msg.timestamp * 1e6) * 1000, msg
                 break
             except Exception as exc:  # noqa: BLE001 - a line that is no frame: skip it, go on
