@@ -146,3 +146,47 @@ def analyze_logs(paths, args: argparse.Namespace, tmp: Path) -> tuple[list[str],
         (d / "replay.mcap").rename(named)
         out.append(str(named))
     return rest + out, skipped
+
+
+def info_lines(path, *, as_json: bool = False) -> str:
+    """``bsc info LOG`` of a CAN log: its format, channels (what ``--bus`` maps) with frame
+    counts, times, and what import would count as bad."""
+    import json
+    from collections import Counter
+
+    from gateway.engine import canlog
+    from gateway.mcaplog import human_size
+
+    stats = canlog.ImportStats(source=str(path), format=canlog.FORMATS[canlog.log_format(path)])
+    first: dict[str, int] = {}          # per channel: earliest, latest, previous frame time
+    last: dict[str, int] = {}
+    prev: dict[str, int] = {}
+    for chan, t, msg in canlog.read_log(path, stats):
+        stats.read(chan, msg)
+        stats.timed(chan, t, prev)
+        first[chan] = min(first.get(chan, t), t)
+        last[chan] = max(last.get(chan, t), t)
+    if as_json:
+        doc = {k: v for k, v in stats.to_json().items()
+               if k not in ("channels", "frames_written", "unmapped", "first_ns", "last_ns")}
+        return json.dumps(doc | {"span_s": stats.span_s}, indent=1)
+    size = Path(path).stat().st_size
+    out = [f"file:        {path} ({human_size(size)})", f"format:      {stats.format} (a CAN log: "
+           "`bsc import` makes a session MCAP of it; replay and analyze take it with --robot and --bus)",
+           f"frames:      {stats.frames_read}"]
+    if stats.min_ns is not None:
+        out.append(f"start:       {stats.min_ns} ns   end: {stats.max_ns} ns   duration: {stats.span_s:.3f} s")
+    out.append("channels:    (--bus BUS=CHANNEL)")
+    width = max([len(c) for c in stats.by_channel] + [7])
+    out.append(f"  {'channel':<{width}}  {'frames':>9}  {'rate_hz':>9}")
+    for chan, n in sorted(stats.by_channel.items()):
+        span = (last[chan] - first[chan]) / 1e9
+        rate = (n - 1) / span if span > 0 else 0.0
+        out.append(f"  {chan:<{width}}  {n:>9}  {rate:>9.2f}"
+                   + (f"  ({stats.backwards[chan]} back in time)" if stats.backwards[chan] else ""))
+    kinds = Counter({"error frames": stats.error_frames, "remote frames": stats.remote_frames,
+                     "lines that are no frame": stats.bad_lines})
+    out.append("bad input:   " + (", ".join(f"{k} {v}" for k, v in kinds.items() if v) or "none"))
+    if stats.ended_early:
+        out.append(f"ends early:  {stats.ended_early}")
+    return "\n".join(out)

@@ -119,6 +119,22 @@ class ImportStats:
         """Seconds from the earliest to the latest frame written."""
         return 0.0 if self.min_ns is None else (self.max_ns - self.min_ns) / 1e9
 
+    def read(self, chan: str, msg) -> None:
+        """Count a frame read from the file on channel ``chan``."""
+        self.frames_read += 1
+        self.by_channel[chan] += 1
+        self.error_frames += msg.is_error_frame
+        self.remote_frames += msg.is_remote_frame
+
+    def timed(self, key: str, t: int, prev: dict[str, int]) -> None:
+        """Count the time ``t`` of a frame of ``key`` (a bus, or a channel): going back from
+        ``prev[key]`` (the one before, updated), the earliest and latest."""
+        if t < prev.get(key, t):
+            self.backwards[key] += 1
+        prev[key] = t
+        self.min_ns = t if self.min_ns is None or t < self.min_ns else self.min_ns
+        self.max_ns = t if self.max_ns is None or t > self.max_ns else self.max_ns
+
     def found(self) -> str:
         """The channels the file holds, with their frame counts."""
         if not self.by_channel:
@@ -275,26 +291,19 @@ def import_frames(path: str | os.PathLike[str], buses: Sequence[str], bus_map: M
     stats.channels = dict(chan_to_bus)
     last: dict[str, int] = {}
     for chan, t, msg in read_log(path, stats):
-        stats.frames_read += 1
-        stats.by_channel[chan] += 1
-        stats.error_frames += msg.is_error_frame
-        stats.remote_frames += msg.is_remote_frame
+        stats.read(chan, msg)
         bus = chan_to_bus.get(chan)
         if bus is None:
             stats.unmapped[chan] += 1
             continue
-        if t < last.get(bus, t):
-            stats.backwards[bus] += 1
-        last[bus] = t
         if t < 0:                                 # before 1970: a clock that was never set
             stats.unmapped[f"{chan} (negative time)"] += 1
             continue
+        stats.timed(bus, t, last)
         msg.timestamp = t / 1e9
         stats.frames_written += 1
         stats.first_ns = t if stats.first_ns is None else stats.first_ns
         stats.last_ns = t
-        stats.min_ns = t if stats.min_ns is None or t < stats.min_ns else stats.min_ns
-        stats.max_ns = t if stats.max_ns is None or t > stats.max_ns else stats.max_ns
         yield bus, t, msg
 
 

@@ -273,3 +273,21 @@ def test_candump_lines_that_are_no_frame_are_skipped_and_counted(candump, tmp_pa
     _, report = replay(tmp_path, "gz", gz, "--robot", "paper_robot", *MAP)
     assert "EOFError" in report["import"]["ended_early"] and 0 < report["frames_in"] < len(lines)
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_info_of_a_log_lists_its_channels(candump, tmp_path, capsys):
+    bad = tmp_path / "bad.log"
+    write_bad_log(bad)
+    assert main(["info", str(candump)]) == 0
+    out = capsys.readouterr().out
+    assert "candump -L" in out and "--bus BUS=CHANNEL" in out and "bad input:   none" in out
+    rows = {ln.split()[0]: ln.split()[1:] for ln in out.splitlines() if ln.startswith("  can")}
+    counts = canlog.ImportStats("", "")
+    for chan, _, msg in canlog.read_log(candump):
+        counts.read(chan, msg)
+    assert {c: int(r[0]) for c, r in rows.items()} == dict(counts.by_channel)
+    assert abs(float(rows["can0"][1]) - 1000 * counts.by_channel["can0"] / 300) < 0.05 * float(rows["can0"][1])
+    assert main(["info", str(bad), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["by_channel"] == {"can0": 203, "can3": 1} and doc["backwards"] == {"can0": 1}
+    assert (doc["error_frames"], doc["remote_frames"]) == (1, 1)
