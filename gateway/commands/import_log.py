@@ -78,6 +78,8 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
 
     from gateway.engine import canlog
 
+    if getattr(args, "check", False):
+        raise canlog.CanLogError("--check compares with the efforts a bsc recording holds; a CAN log holds none")
     rob, bus_map = load(args.file, args.robot, args.bus)
     source = args.file
     with canlog.imported(source, rob, bus_map=bus_map, fd=args.fd) as (mcap, stats):
@@ -185,6 +187,7 @@ def info_lines(path, *, as_json: bool = False) -> str:
         out.append(f"  {chan:<{width}}  {n:>9}  {rate:>9.2f}"
                    + (f"  ({stats.backwards[chan]} back in time)" if stats.backwards[chan] else ""))
     kinds = Counter({"error frames": stats.error_frames, "remote frames": stats.remote_frames,
+                     "CAN FD frames": stats.fd_frames,
                      "lines that are no frame": stats.bad_lines})
     out.append("bad input:   " + (", ".join(f"{k} {v}" for k, v in kinds.items() if v) or "none"))
     if stats.ended_early:

@@ -106,6 +106,8 @@ class ImportStats:
     backwards: Counter = dataclasses.field(default_factory=Counter)      # bus -> times going back
     error_frames: int = 0
     remote_frames: int = 0
+    fd_frames: int = 0
+    fd: bool = False                                                     # the session's buses run FD
     ended_early: str | None = None                                       # why reading stopped early
     bad_lines: int = 0                                                   # candump lines that are no frame
     first_bad_line: str | None = None
@@ -125,6 +127,7 @@ class ImportStats:
         self.by_channel[chan] += 1
         self.error_frames += msg.is_error_frame
         self.remote_frames += msg.is_remote_frame
+        self.fd_frames += msg.is_fd
 
     def timed(self, key: str, t: int, prev: dict[str, int]) -> None:
         """Count the time ``t`` of a frame of ``key`` (a bus, or a channel): going back from
@@ -153,6 +156,9 @@ class ImportStats:
         if self.error_frames or self.remote_frames:
             out.append(f"{self.error_frames} error frames, {self.remote_frames} remote frames "
                        "(recorded; the drivers reject and count them)")
+        if self.fd_frames and not self.fd:
+            out.append(f"{self.fd_frames} CAN FD frames on buses imported as classic CAN (the drivers count "
+                       "them as fd_on_classic): pass --fd if the buses run FD")
         if self.bad_lines:
             out.append(f"{self.bad_lines} lines that are no frame, skipped (first: {self.first_bad_line})")
         if self.ended_early:
@@ -337,7 +343,7 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     buses = list(WireMap.from_robot(robot).buses)
     bus_map = dict(bus_map or {})
     fmt = log_format(path) or path.suffix
-    stats = ImportStats(source=str(source_name or path), format=FORMATS.get(fmt, fmt))
+    stats = ImportStats(source=str(source_name or path), format=FORMATS.get(fmt, fmt), fd=fd)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists (use --force to replace it)")
     ok = False

@@ -291,3 +291,16 @@ def test_info_of_a_log_lists_its_channels(candump, tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert doc["by_channel"] == {"can0": 203, "can3": 1} and doc["backwards"] == {"can0": 1}
     assert (doc["error_frames"], doc["remote_frames"]) == (1, 1)
+
+
+def test_fd_frames_and_check_of_a_log(candump, tmp_path, capsys):
+    fd = tmp_path / "fd.log"
+    lines = candump.read_text().splitlines()
+    fd.write_text("\n".join(ln.replace("#", "##1", 1) for ln in lines) + "\n")     # the same frames, as FD
+    _, report = replay(tmp_path, "classic", fd, "--robot", "paper_robot", *MAP)
+    assert "pass --fd" in capsys.readouterr().err and report["import"]["fd_frames"] == len(lines)
+    assert report["good_efforts"] == 0 and report["rejections"]["fd_on_classic"] > 0
+    _, report = replay(tmp_path, "fd", fd, "--robot", "paper_robot", *MAP, "--fd")
+    assert report["good_efforts"] > 0.9 * report["efforts"] > 0 and "pass --fd" not in capsys.readouterr().err
+    assert main(["replay", str(candump), "--robot", "paper_robot", *MAP, "-o", str(tmp_path / "c"), "--check"]) == 2
+    assert "a CAN log holds none" in capsys.readouterr().err
