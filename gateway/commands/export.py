@@ -19,6 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL",
                         help="write bus BUS as channel CHANNEL (repeatable; only the buses named are "
                              "written; ASC/BLF/TRC channels are numbers from 1; a CSV holds one bus: BUS=-)")
+    parser.add_argument("--start", type=float, default=None, metavar="S", help="begin S seconds after the session's start")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="write S seconds of the session")
+    parser.add_argument("--can-id", action="append", default=[], metavar="ID[,ID...]",
+                        help="only these CAN ids (decimal or 0x hex; repeatable)")
     parser.add_argument("--force", action="store_true", help="replace the output if it exists")
     parser.add_argument("--quiet", "-q", action="store_true", help="no summary line")
 
@@ -27,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from gateway.engine import canlog
-    from gateway.replay import ReplayError, iter_can_frames, read_context, readable
+    from gateway.replay import ReplayError, iter_can_frames, parse_can_ids, read_context, readable
 
     fmt = canlog.format_of_name(args.output)
     if fmt not in canlog.FORMATS:
@@ -45,8 +49,11 @@ def run(args: argparse.Namespace) -> int:
                               + (" (empty log)" if ctx.message_count == 0 else ""))
         bus_map = canlog.parse_bus_map(args.bus, buses)
         channels = canlog.export_channels(fmt, buses, bus_map)
-        stats = canlog.export_log(args.output, iter_can_frames(src, buses=list(channels)), channels,
-                                  overwrite=args.force)
+        start_ns, end_ns = ctx.window(args.start, args.duration)
+        frames = iter_can_frames(src, buses=list(channels), start_ns=start_ns, end_ns=end_ns,
+                                 can_ids=parse_can_ids(args.can_id) if args.can_id else None)
+        stats = canlog.export_log(args.output, frames, channels, overwrite=args.force)
+
     for reason, n in sorted(stats.skipped.items()):
         warn(f"{n} frames not written: {reason}")
     if not args.quiet:

@@ -466,6 +466,9 @@ def export_log(out: str | os.PathLike[str], frames: Iterable[tuple[str, int, Any
                 stats.written[bus] += 1
         finally:
             writer.stop()
+        if not stats.written:
+            raise CanLogError(f"{out}: no CAN frames to write (none of these buses, or none in the window); "
+                              "nothing written")
         os.replace(tmp, out)
     finally:
         Path(tmp).unlink(missing_ok=True)

@@ -304,3 +304,18 @@ def test_fd_frames_and_check_of_a_log(candump, tmp_path, capsys):
     assert report["good_efforts"] > 0.9 * report["efforts"] > 0 and "pass --fd" not in capsys.readouterr().err
     assert main(["replay", str(candump), "--robot", "paper_robot", *MAP, "-o", str(tmp_path / "c"), "--check"]) == 2
     assert "a CAN log holds none" in capsys.readouterr().err
+
+
+def test_export_a_window_and_ids(session, tmp_path, capsys):
+    out = tmp_path / "w.asc"
+    assert main(["export", str(session), "-o", str(out), "--start", "0.1", "--duration", "0.05",
+                 "--can-id", "0x300,0x301", "-q"]) == 0
+    t0 = rp.read_context(session).start_ns
+    want = [(t, m.arbitration_id) for _, t, m in rp.iter_can_frames(session)
+            if t0 + 100_000_000 <= t < t0 + 150_000_000 and m.arbitration_id in (0x300, 0x301)]
+    got = [(t, m.arbitration_id) for _, t, m in canlog.read_log(out)]
+    assert got == want and len(got) > 50
+    before = out.read_bytes()
+    assert main(["export", str(session), "-o", str(out), "--start", "50", "--force"]) == 2
+    assert "nothing written" in capsys.readouterr().err and out.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["w.asc"]
