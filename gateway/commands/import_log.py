@@ -185,7 +185,8 @@ def info_lines(path, *, as_json: bool = False) -> str:
         span = (last[chan] - first[chan]) / 1e9
         rate = (n - 1) / span if span > 0 else 0.0
         out.append(f"  {chan:<{width}}  {n:>9}  {rate:>9.2f}"
-                   + (f"  ({stats.backwards[chan]} back in time)" if stats.backwards[chan] else ""))
+                   + (f"  ({stats.backwards[chan]} back in time)" if stats.backwards[chan] else "")
+                   + (f"  ({stats.jumps[chan]} jumps > {canlog.JUMP_NS // 10**9} s)" if stats.jumps[chan] else ""))
     kinds = Counter({"error frames": stats.error_frames, "remote frames": stats.remote_frames,
                      "CAN FD frames": stats.fd_frames,
                      "lines that are no frame": stats.bad_lines})

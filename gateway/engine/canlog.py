@@ -43,6 +43,7 @@ NUMBERED = (".asc", ".blf", ".trc")          # channels are numbers (from 1, as 
 NO_CHANNEL = "-"                             # a frame without a channel (CSV, some error frames)
 _FROM_ZERO = (".asc", ".blf")                # python-can's numbering of these starts at 0
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+JUMP_NS = 60 * 10**9                         # a bus silent this long: a clock jump, or logs joined
 
 
 class CanLogError(ValueError):
@@ -104,6 +105,7 @@ class ImportStats:
     by_channel: Counter = dataclasses.field(default_factory=Counter)     # every frame read
     unmapped: Counter = dataclasses.field(default_factory=Counter)       # channel -> frames left out
     backwards: Counter = dataclasses.field(default_factory=Counter)      # bus -> times going back
+    jumps: Counter = dataclasses.field(default_factory=Counter)          # bus -> silences > JUMP_NS
     error_frames: int = 0
     remote_frames: int = 0
     fd_frames: int = 0
@@ -132,8 +134,11 @@ class ImportStats:
     def timed(self, key: str, t: int, prev: dict[str, int]) -> None:
         """Count the time ``t`` of a frame of ``key`` (a bus, or a channel): going back from
         ``prev[key]`` (the one before, updated), the earliest and latest."""
-        if t < prev.get(key, t):
+        before = prev.get(key, t)
+        if t < before:
             self.backwards[key] += 1
+        elif t - before > JUMP_NS:
+            self.jumps[key] += 1
         prev[key] = t
         self.min_ns = t if self.min_ns is None or t < self.min_ns else self.min_ns
         self.max_ns = t if self.max_ns is None or t > self.max_ns else self.max_ns
@@ -153,6 +158,9 @@ class ImportStats:
         if self.backwards:
             out.append("timestamps going backwards (kept in file order): " + ", ".join(
                 f"{b} {n}" for b, n in sorted(self.backwards.items())))
+        if self.jumps:
+            out.append(f"times jumping ahead by more than {JUMP_NS // 10**9} s (a clock set, or logs joined): "
+                       + ", ".join(f"{b} {n}" for b, n in sorted(self.jumps.items())))
         if self.error_frames or self.remote_frames:
             out.append(f"{self.error_frames} error frames, {self.remote_frames} remote frames "
                        "(recorded; the drivers reject and count them)")
@@ -168,7 +176,7 @@ class ImportStats:
 
     def to_json(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        for k in ("by_channel", "unmapped", "backwards"):
+        for k in ("by_channel", "unmapped", "backwards", "jumps"):
             d[k] = dict(sorted(d[k].items()))
         return d
 

@@ -319,3 +319,16 @@ def test_export_a_window_and_ids(session, tmp_path, capsys):
     assert main(["export", str(session), "-o", str(out), "--start", "50", "--force"]) == 2
     assert "nothing written" in capsys.readouterr().err and out.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["w.asc"]
+
+
+def test_a_clock_set_mid_log_is_reported_and_replayed(candump, tmp_path, capsys):
+    lines = candump.read_text().splitlines()
+    early = [f"({float(ln[1:ln.index(')')]) - 1_767_225_000:.6f}){ln[ln.index(')') + 1:]}" for ln in lines[:300]]
+    log = tmp_path / "jump.log"
+    log.write_text("\n".join(early + lines[300:]) + "\n")      # an RTC set after 300 frames
+    ref, _ = replay(tmp_path, "ref", candump, "--robot", "paper_robot", *MAP)
+    got, report = replay(tmp_path, "jump", log, "--robot", "paper_robot", *MAP)
+    assert report["import"]["jumps"] == {"arm0": 1, "arm1": 1, "spacecraft": 1}
+    assert "times jumping ahead" in capsys.readouterr().err
+    assert report["good_efforts"] > 0.9 * report["efforts"]
+    assert all(got[k][-100:] == ref[k][-100:] for k in ref)    # after the jump: the clean log's efforts
