@@ -162,8 +162,11 @@ def run(args: argparse.Namespace) -> int:
                                                 model_robot=model, layout=layout, record=rec,
                                                 publish_samples=not args.no_samples, receive=args.receive))
         freeze_heap()
+        from gateway.canbus import describe
+
+        rates = describe(BusOptions.from_args(args), args.interface, chans.values(), fd=args.fd)
         print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items())
-              + f" (receive: {gw.receive})", flush=True)
+              + f" (receive: {gw.receive})" + (f"; {rates}" if rates else ""), flush=True)
         try:
             gw.run(stop, args.duration)
         except KeyboardInterrupt:

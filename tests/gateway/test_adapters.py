@@ -164,3 +164,15 @@ def test_bus_flags_need_a_bus(session, tmp_path, capsys):
     assert main(["record", "-o", str(tmp_path / "x.mcap"), "-b", "500k"]) == 2
     assert "give --interface" in capsys.readouterr().err
     assert main(["sim", "--duration", "0.05", "--out", str(tmp_path / "s"), "-b", "500k"]) == 2
+
+
+def test_gateway_opens_its_buses_with_the_flags_and_says_so(plugin, tmp_path):
+    from support import free_port
+
+    proc, calls = bsc(plugin, tmp_path, "gateway", "-i", "fakecan", "-c", "bsc", "-b", "500k",
+                      "--bus-kwarg", "serial=3", "--robot", "paper_robot", "--listen",
+                      f"tcp/127.0.0.1:{free_port()}", "--duration", "0.3")
+    assert proc.returncode == 0, proc.stderr
+    assert [(c["channel"], c["bitrate"], c["serial"]) for c in calls] == [
+        ("bsc-arm0", 500_000, 3), ("bsc-arm1", 500_000, 3), ("bsc-spacecraft", 500_000, 3)]
+    assert "(receive: threads); bitrate 500000" in proc.stdout
