@@ -32,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", "-o", required=True, metavar="FILE.mcap", help="the session MCAP to write")
     add_log_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace the output if it exists")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
 def warn(command: str):
@@ -63,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.output).suffix.lower() != ".mcap":
         raise canlog.CanLogError(f"--output {args.output}: name it .mcap")
     rob, bus_map = load(args.file, args.robot, args.bus)
-    stats = canlog.import_log(args.file, args.output, rob, bus_map=bus_map, fd=args.fd, overwrite=args.force)
+    stats = canlog.import_log(args.file, args.output, rob, bus_map=bus_map, fd=args.fd, overwrite=args.force,
+                              progress=not args.quiet)
     canlog.warn_lines(stats, warn("import"))
     print(f"bsc import: {summary(stats)}")
     print(f"bsc import: wrote {args.output}")
@@ -82,7 +84,7 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
         raise canlog.CanLogError("--check compares with the efforts a bsc recording holds; a CAN log holds none")
     rob, bus_map = load(args.file, args.robot, args.bus)
     source = args.file
-    with canlog.imported(source, rob, bus_map=bus_map, fd=args.fd) as (mcap, stats):
+    with canlog.imported(source, rob, bus_map=bus_map, fd=args.fd, progress=not args.quiet) as (mcap, stats):
         canlog.warn_lines(stats, warn("replay"))
         print(f"bsc replay: imported {summary(stats)}")
         args.file, args.robot, args.bus = str(mcap), None, []
@@ -134,7 +136,8 @@ def analyze_logs(paths, args: argparse.Namespace, tmp: Path) -> tuple[list[str],
     out, skipped = [], []
     for i, log in enumerate(sorted(dict.fromkeys(logs), key=lambda q: (first_time_ns(q), str(q)))):
         try:
-            with canlog.imported(log, rob, bus_map=bus_map, fd=args.fd) as (mcap, stats):
+            with canlog.imported(log, rob, bus_map=bus_map, fd=args.fd,
+                                 progress=not getattr(args, "quiet", True) and sys.stderr.isatty()) as (mcap, stats):
                 for line in stats.warnings():
                     print(f"bsc analyze: {log}: {line}", file=sys.stderr)
                 d = tmp / f"{i:05d}"

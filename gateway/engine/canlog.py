@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gzip
+import io
 import os
 import tempfile
 from collections import Counter
@@ -181,12 +183,48 @@ class ImportStats:
         return d
 
 
-def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None
-             ) -> Iterator[tuple[str, int, Any]]:
+class _Counted(io.RawIOBase):
+    """A file's bytes, counting those read (how far a read has come: its progress)."""
+
+    def __init__(self, path: Path):
+        self.f, self.n = open(path, "rb"), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b) -> int:
+        k = self.f.readinto(b) or 0
+        self.n += k
+        return k
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+_READERS = {".asc": ("ASCReader", {"relative_timestamp": False}), ".blf": ("BLFReader", {}),
+            ".trc": ("TRCReader", {}), ".csv": ("CSVReader", {})}
+PROGRESS_EVERY = 8192                         # frames between two progress calls
+
+
+def _open(path: Path, fmt: str):
+    """``(stream for python-can's reader, byte counter)``: binary for BLF, text for the rest,
+    through gzip for ``.gz``."""
+    raw = _Counted(path)
+    f = io.BufferedReader(raw, 1 << 16)
+    if path.suffix.lower() == ".gz":
+        f = gzip.GzipFile(fileobj=f, mode="rb")
+    if fmt != ".blf":
+        f = io.TextIOWrapper(f, encoding="utf-8", errors="replace")
+    return f, raw
+
+
+def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None,
+             progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, int, Any]]:
     """``(channel label, t_ns, can.Message)`` of a CAN log in file order. A file that stops
     making sense part way (truncated, garbage) ends the iteration: ``stats.ended_early`` says
     why; nothing read before is lost. A file that yields nothing at all raises
-    :class:`CanLogError`."""
+    :class:`CanLogError`. ``progress(bytes read of the file)`` is called now and then."""
     import can
 
     path = Path(path)
@@ -196,44 +234,48 @@ def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None
                           f"{', '.join(FORMATS)}, or .gz of them)")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    if fmt == ".log":
-        yield from _read_candump(path, stats)
-        return
+    f, raw = _open(path, fmt)
+    with f:
+        frames = _read_candump(path, f, stats) if fmt == ".log" else _read_with(path, fmt, f, stats)
+        for n, item in enumerate(frames, 1):
+            if progress is not None and n % PROGRESS_EVERY == 0:
+                progress(raw.n)
+            yield item
+    if progress is not None:
+        progress(raw.n)
+
+
+def _read_with(path: Path, fmt: str, f, stats: ImportStats | None) -> Iterator[tuple[str, int, Any]]:
+    """:func:`read_log` by python-can's reader of ``fmt``: it stops at the first thing it cannot
+    read (``stats.ended_early``)."""
+    import can
+
+    name, kwargs = _READERS[fmt]
     n = 0
     try:
-        if fmt == ".asc":           # absolute times (python-can's LogReader drops the option for .gz)
-            import gzip
-
-            src = gzip.open(path, "rt") if path.suffix.lower() == ".gz" else path
-            reader = can.ASCReader(src, relative_timestamp=False)
-        else:
-            reader = can.LogReader(path)
+        reader = getattr(can, name)(f, **kwargs)
+        it = iter(reader)
     except Exception as exc:  # noqa: BLE001 - any reader's complaint about its header
         raise CanLogError(f"{path}: not a readable {FORMATS[fmt]} file ({exc})") from None
-    try:
-        it = iter(reader)
-        while True:
-            try:
-                msg = next(it)
-            except StopIteration:
-                break
-            except Exception as exc:  # noqa: BLE001 - a bad line or a cut record: stop there
-                why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                if n == 0:
-                    raise CanLogError(f"{path}: not a readable {FORMATS[fmt]} file ({why})") from None
-                if stats is not None:
-                    stats.ended_early = f"after frame {n}: {why}"
-                break
-            n += 1
-            yield channel_label(msg.channel, fmt), round(msg.timestamp * 1e6) * 1000, msg
-        # python-can's BLF reader stops quietly at a cut object: the header knows the size
-        declared = getattr(reader, "file_size", 0) if fmt == ".blf" else 0
-        if declared and path.suffix.lower() != ".gz" and path.stat().st_size < declared and stats is not None:
-            stats.ended_early = (f"truncated: {path.stat().st_size} of the {declared} bytes its header "
-                                 f"announces, after frame {n}")
-    finally:
-        with contextlib.suppress(Exception):
-            reader.stop()
+    while True:
+        try:
+            msg = next(it)
+        except StopIteration:
+            break
+        except Exception as exc:  # noqa: BLE001 - a bad line or a cut record: stop there
+            why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            if n == 0:
+                raise CanLogError(f"{path}: not a readable {FORMATS[fmt]} file ({why})") from None
+            if stats is not None:
+                stats.ended_early = f"after frame {n}: {why}"
+            break
+        n += 1
+        yield channel_label(msg.channel, fmt), round(msg.timestamp * 1e6) * 1000, msg
+    # python-can's BLF reader stops quietly at a cut object: the header knows the size
+    declared = getattr(reader, "file_size", 0) if fmt == ".blf" else 0
+    if declared and path.suffix.lower() != ".gz" and path.stat().st_size < declared and stats is not None:
+        stats.ended_early = (f"truncated: {path.stat().st_size} of the {declared} bytes its header "
+                             f"announces, after frame {n}")
 
 
 class _Lines:
@@ -251,7 +293,7 @@ class _Lines:
             line = next(self.f)
         except StopIteration:
             raise
-        except Exception as exc:  # noqa: BLE001 - EOFError, zlib.error, UnicodeDecodeError...
+        except Exception as exc:  # noqa: BLE001 - EOFError, zlib.error, BadGzipFile...
             self.error = f"{type(exc).__name__}: {exc}"
             raise StopIteration from None
         self.n += 1
@@ -259,34 +301,30 @@ class _Lines:
         return line
 
     def close(self) -> None:
-        self.f.close()
+        """python-can's reader closes its file: the caller does."""
 
 
-def _read_candump(path: Path, stats: ImportStats | None) -> Iterator[tuple[str, int, Any]]:
+def _read_candump(path: Path, f, stats: ImportStats | None) -> Iterator[tuple[str, int, Any]]:
     """:func:`read_log` of a candump log: a line that is no frame is skipped and counted
     (``stats.bad_lines``; python-can's reader stops at the first), the rest is read."""
-    import gzip
-
     import can
 
-    opener = gzip.open if path.suffix.lower() == ".gz" else open
     n = 0
-    with opener(path, "rt", errors="replace") as f:
-        lines = _Lines(f)
-        while True:
-            try:
-                for msg in can.CanutilsLogReader(lines):
-                    n += 1
-                    if msg.channel is None and msg.is_error_frame:     # python-can leaves it out
-                        parts = lines.last.split()
-                        msg.channel = parts[1] if len(parts) > 1 else None
-                    yield channel_label(msg.channel, ".log"), round(msg.timestamp * 1e6) * 1000, msg
-                break
-            except Exception as exc:  # noqa: BLE001 - a line that is no frame: skip it, go on
-                if stats is not None:
-                    stats.bad_lines += 1
-                    if stats.first_bad_line is None:
-                        stats.first_bad_line = f"line {lines.n}: {lines.last.strip()[:80]!r} ({type(exc).__name__})"
+    lines = _Lines(f)
+    while True:
+        try:
+            for msg in can.CanutilsLogReader(lines):
+                n += 1
+                if msg.channel is None and msg.is_error_frame:     # python-can leaves it out
+                    parts = lines.last.split()
+                    msg.channel = parts[1] if len(parts) > 1 else None
+                yield channel_label(msg.channel, ".log"), round(msg.timestamp * 1e6) * 1000, msg
+            break
+        except Exception as exc:  # noqa: BLE001 - a line that is no frame: skip it, go on
+            if stats is not None:
+                stats.bad_lines += 1
+                if stats.first_bad_line is None:
+                    stats.first_bad_line = f"line {lines.n}: {lines.last.strip()[:80]!r} ({type(exc).__name__})"
     if lines.error is not None:
         if n == 0:
             raise CanLogError(f"{path}: not a readable {FORMATS['.log']} file ({lines.error})")
@@ -297,14 +335,15 @@ def _read_candump(path: Path, stats: ImportStats | None) -> Iterator[tuple[str, 
 
 
 def import_frames(path: str | os.PathLike[str], buses: Sequence[str], bus_map: Mapping[str, str],
-                  stats: ImportStats) -> Iterator[tuple[str, int, Any]]:
+                  stats: ImportStats, progress: Callable[[int], None] | None = None
+                  ) -> Iterator[tuple[str, int, Any]]:
     """``(bus, t_ns, can.Message)`` of the frames of ``path`` whose channel maps to a bus, in
     file order, counting the rest in ``stats``. No ``bus_map``: channels named as buses are
     those buses."""
     chan_to_bus = {c: b for b, c in bus_map.items()} if bus_map else {b: b for b in buses}
     stats.channels = dict(chan_to_bus)
     last: dict[str, int] = {}
-    for chan, t, msg in read_log(path, stats):
+    for chan, t, msg in read_log(path, stats, progress):
         stats.read(chan, msg)
         bus = chan_to_bus.get(chan)
         if bus is None:
@@ -338,7 +377,7 @@ def _check_mapping(path, stats: ImportStats, buses: Sequence[str], bus_map: Mapp
 
 def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot, *,
                bus_map: Mapping[str, str] | None = None, fd: bool = False, overwrite: bool = False,
-               source_name: str | None = None) -> ImportStats:
+               source_name: str | None = None, progress: bool = False) -> ImportStats:
     """Write the frames of CAN log ``path`` to a session MCAP ``out`` for ``robot`` (a
     :class:`robot_description.Robot`): its URDF and DBCs attached, the frames on ``/can/<bus>``
     in file order at their own times. Returns what was read; raises :class:`CanLogError` (and
@@ -355,12 +394,14 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists (use --force to replace it)")
     ok = False
+    bar = _bar(path) if progress else None
     try:
         with Recorder(out, overwrite=overwrite) as rec:
             rec.add_session_context(**session_context(robot, fd=fd, extra={
                 "mode": "import", "imported_from": Path(source_name or path).name,
                 "import_format": stats.format}))
-            for i, (bus, t, msg) in enumerate(import_frames(path, buses, bus_map, stats)):
+            moved = (lambda n: bar.update(n - bar.n)) if bar is not None else None
+            for i, (bus, t, msg) in enumerate(import_frames(path, buses, bus_map, stats, moved)):
                 rec.record_can(bus, msg, t)
                 if i % 4096 == 4095 and rec.queue_depth > rec.queue_size // 2:
                     rec.flush()                     # wait for the disk rather than drop
@@ -369,6 +410,8 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
         if not ok:
             raise CanLogError(f"{out}: {rec.stats.dropped} frames not written ({rec.error or 'recorder'})")
     finally:
+        if bar is not None:
+            bar.close()
         if not ok:
             with contextlib.suppress(Exception):
                 for p in rec.paths:
@@ -377,13 +420,20 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     return stats
 
 
+def _bar(path: Path):
+    """A progress bar over the file's bytes (compressed bytes of a .gz)."""
+    from tqdm import tqdm
+
+    return tqdm(total=path.stat().st_size, unit="B", unit_scale=True, desc=f"import {path.name}", leave=False)
+
+
 @contextlib.contextmanager
 def imported(path: str | os.PathLike[str], robot, *, bus_map: Mapping[str, str] | None = None,
-             fd: bool = False) -> Iterator[tuple[Path, ImportStats]]:
+             fd: bool = False, progress: bool = False) -> Iterator[tuple[Path, ImportStats]]:
     """:func:`import_log` into a temporary MCAP (named after the log), removed afterwards."""
     with tempfile.TemporaryDirectory(prefix="bsc-import-") as tmp:
         out = Path(tmp) / (Path(path).name + ".mcap")
-        stats = import_log(path, out, robot, bus_map=bus_map, fd=fd)
+        stats = import_log(path, out, robot, bus_map=bus_map, fd=fd, progress=progress)
         yield out, stats
 
 
