@@ -42,7 +42,7 @@ from typing import Any
 FORMATS = {".log": "candump -L", ".asc": "Vector ASC", ".blf": "Vector BLF", ".trc": "PEAK TRC",
            ".csv": "python-can CSV"}
 NUMBERED = (".asc", ".blf", ".trc")          # channels are numbers (from 1, as the tools show them)
-NO_CHANNEL = "-"                             # a frame without a channel (CSV, some error frames)
+NO_CHANNEL = "-"                             # a frame without a channel (CSV)
 _FROM_ZERO = (".asc", ".blf")                # python-can's numbering of these starts at 0
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 JUMP_NS = 60 * 10**9                         # a bus silent this long: a clock jump, or logs joined
