@@ -146,6 +146,9 @@ def run(args: argparse.Namespace) -> int:
         from gateway.canbus import BusOptions
 
         buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd, options=BusOptions.from_args(args))
+        from gateway.commands.record import bus_rates
+
+        rates = bus_rates(args, chans)
         session = stack.enter_context(zenoh.open(config_from_args(args)))
         rec = None
         if args.record is not None:
@@ -155,16 +158,14 @@ def run(args: argparse.Namespace) -> int:
             rec = stack.enter_context(Recorder(args.record))
             # the layout the filter starts from, so that a replay of this log starts from it too
             rec.add_session_context(**session_context(robot, fd=args.fd,
-                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters)))
+                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters),
+                                                      extra={"bus_rates": rates}))
         timing = SourceTiming(rate=args.source_rate)
         gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
                                                 timing=timing,
                                                 model_robot=model, layout=layout, record=rec,
                                                 publish_samples=not args.no_samples, receive=args.receive))
         freeze_heap()
-        from gateway.canbus import describe
-
-        rates = describe(BusOptions.from_args(args), args.interface, chans.values(), fd=args.fd)
         print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items())
               + f" (receive: {gw.receive})" + (f"; {rates}" if rates else ""), flush=True)
         try:

@@ -211,6 +211,15 @@ def _positive(name: str, value: float | None) -> None:
         raise UserError(f"{name} {value}: must be positive")
 
 
+def bus_rates(args: argparse.Namespace, chans: dict) -> str:
+    """The bit rates the buses open with (``bsc.session`` ``bus_rates``), "" without CAN."""
+    if not chans:
+        return ""
+    from gateway.canbus import BusOptions, describe
+
+    return describe(BusOptions.from_args(args), args.interface, chans.values(), fd=args.fd)
+
+
 def run(args: argparse.Namespace) -> int:
     import contextlib
     from pathlib import Path
@@ -265,7 +274,8 @@ def run(args: argparse.Namespace) -> int:
                 robot, fd=args.fd, scenario_text=scenario,
                 extra={"command": "bsc record", "interface": args.interface or "",
                        "channels": ",".join(f"{b}={c}" for b, c in chans.items()),
-                       "zenoh_keyexpr": keyexpr or ""}))
+                       "zenoh_keyexpr": keyexpr or "",
+                       "bus_rates": bus_rates(args, chans)}))
             buses = {}
             if chans:
                 from gateway.commands.gateway import open_can

@@ -140,6 +140,9 @@ def test_every_command_that_opens_a_bus_takes_the_flags(plugin, session, tmp_pat
     assert proc.returncode == 0, proc.stderr
     assert [(c["channel"], c["bitrate"]) for c in calls] == [
         ("bsc-arm0", 500_000), ("bsc-arm1", 500_000), ("bsc-spacecraft", 500_000)]
+    from gateway.replay import read_context
+
+    assert read_context(tmp_path / "r.mcap").session["bus_rates"] == "bitrate 500000"   # the log says
     from gateway.canbus import BusOptions
     from gateway.cli import build_parser
 
@@ -171,8 +174,11 @@ def test_gateway_opens_its_buses_with_the_flags_and_says_so(plugin, tmp_path):
 
     proc, calls = bsc(plugin, tmp_path, "gateway", "-i", "fakecan", "-c", "bsc", "-b", "500k",
                       "--bus-kwarg", "serial=3", "--robot", "paper_robot", "--listen",
-                      f"tcp/127.0.0.1:{free_port()}", "--duration", "0.3")
+                      f"tcp/127.0.0.1:{free_port()}", "--duration", "0.3", "--record", str(tmp_path / "g.mcap"))
     assert proc.returncode == 0, proc.stderr
     assert [(c["channel"], c["bitrate"], c["serial"]) for c in calls] == [
         ("bsc-arm0", 500_000, 3), ("bsc-arm1", 500_000, 3), ("bsc-spacecraft", 500_000, 3)]
     assert "(receive: threads); bitrate 500000" in proc.stdout
+    from gateway.replay import read_context
+
+    assert read_context(tmp_path / "g.mcap").session["bus_rates"] == "bitrate 500000"
