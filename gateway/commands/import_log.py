@@ -82,6 +82,9 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
 
     if getattr(args, "check", False):
         raise canlog.CanLogError("--check compares with the efforts a bsc recording holds; a CAN log holds none")
+    if getattr(args, "zenoh", False):
+        raise canlog.CanLogError("--zenoh republishes recorded samples and efforts; a CAN log holds raw frames "
+                                 "only: replay it with --out DIR, or onto CAN with --interface")
     rob, bus_map = load(args.file, args.robot, args.bus)
     source = args.file
     with canlog.imported(source, rob, bus_map=bus_map, fd=args.fd, progress=not args.quiet) as (mcap, stats):

@@ -87,11 +87,7 @@ def _warn(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from gateway.engine.canlog import is_can_log
 
-    if is_can_log(args.file):
-        from gateway.commands.import_log import replay_can_log
-
-        return replay_can_log(args, run)
-    if args.bus:
+    if args.bus and not is_can_log(args.file):
         raise ValueError("--bus maps the channels of a CAN log (.log, .asc, .blf, .trc, .csv); an MCAP log has buses")
     from gateway.cli import UserError
     from gateway.replay import parse_can_ids
@@ -114,6 +110,10 @@ def run(args: argparse.Namespace) -> int:
     from gateway.commands import check_rt_priority
 
     check_rt_priority(args.rt_priority)
+    if is_can_log(args.file):            # the options checked: import it, then replay that
+        from gateway.commands.import_log import replay_can_log
+
+        return replay_can_log(args, run)
     if args.out is not None:
         if args.rt_priority:
             raise UserError("--rt-priority is for live playback (--interface, --zenoh), not --out")

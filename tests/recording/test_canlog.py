@@ -148,6 +148,11 @@ def test_a_log_needs_a_robot_and_a_mapping_and_says_what_it_holds(candump, tmp_p
     assert "buses arm0, arm1, spacecraft" in capsys.readouterr().err
     assert main(["import", str(candump), "--robot", "paper_robot", "-o", str(tmp_path / "s.mcap")]) == 2
     assert not (tmp_path / "s.mcap").exists()
+    capsys.readouterr()
+    assert main(["replay", str(candump), "--robot", "paper_robot", *MAP]) == 2          # no mode
+    assert "choose one mode" in capsys.readouterr().err
+    assert main(["replay", str(candump), "--robot", "paper_robot", *MAP, "--zenoh"]) == 2
+    assert "raw frames only" in capsys.readouterr().err
 
 
 def test_a_channel_mapped_to_no_bus_is_counted(candump, tmp_path, capsys):
