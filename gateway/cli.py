@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("info", "summarise an MCAP log: channels, rates, gaps, metadata, complete or truncated"),
     "recover": ("recover", "salvage a truncated MCAP log (crash, kill, full disk) into a valid file"),
     "record": ("record", "record a session to MCAP: raw CAN frames per bus and every zenoh sample"),
+    "import": ("import_log", "convert a CAN log (candump .log, .asc, .blf, .trc, .csv) into a session MCAP"),
+    "export": ("export", "write a session's raw CAN frames as a candump .log, .asc, .blf, .trc or .csv file"),
     "replay": ("replay", "replay a log offline through drivers + estimator, or live onto CAN or zenoh"),
     "monitor": ("monitor", "live monitoring over zenoh: residuals, friction, efficiency, sensor health, alerts"),
     "analyze": ("analyze", "actuator and sensor degradation from recorded sessions: friction, efficiency, trends"),
@@ -84,4 +86,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # ``python -m gateway.cli``: this file runs as __main__, a second copy of the module whose
+    # UserError the commands (importing gateway.cli) do not raise; use the one they import
+    from gateway.cli import main as _main
+
+    raise SystemExit(_main())

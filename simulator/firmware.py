@@ -455,9 +455,11 @@ def bus_channels(robot, channel: str | Mapping[str, str]) -> dict[str, str]:
     return {b: chans[b] for b in names}
 
 
-def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool = False, **kw) -> BusSet:
+def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool = False, options=None,
+               **kw) -> BusSet:
     """One python-can bus per bus of the robot (WireMap order), opened with
-    ``ignore_config=True``. ``virtual`` buses keep the frames' timestamps
+    ``ignore_config=True``, or (``options``, a :class:`gateway.canbus.BusOptions`: a command
+    line's) with its bit rates and adapter arguments over python-can's configuration. ``virtual`` buses keep the frames' timestamps
     (``preserve_timestamps=True``); ``udp_multicast`` buses get one port each (:func:`udp_port`)
     unless ``port`` is given. Extra keyword arguments go to every ``can.Bus``. On failure the
     buses already open are shut down and the python-can error propagates."""
@@ -479,7 +481,13 @@ def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool
                     raise FirmwareError(f"udp_multicast: channel of bus {name} must be a multicast group address "
                                         f"such as 239.74.163.1, not {ch!r} (give BUS=GROUP for every bus)")
                 opts.setdefault("port", udp_port(i))
-            buses[name] = can.Bus(interface=interface, channel=ch, ignore_config=True, **opts)
+            if options is not None:
+                from gateway.canbus import open_bus
+
+                opts.pop("fd", None)
+                buses[name] = open_bus(interface, ch, options, fd=fd, **opts)
+            else:
+                buses[name] = can.Bus(interface=interface, channel=ch, ignore_config=True, **opts)
     except BaseException:
         buses.close()
         raise

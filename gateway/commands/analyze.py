@@ -17,13 +17,18 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("paths", nargs="+", metavar="PATH", help="session .mcap files or folders of them")
+    p.add_argument("paths", nargs="+", metavar="PATH",
+                   help="session .mcap files, CAN logs (.log candump, .asc, .blf, .trc, .csv, .gz of them; "
+                        "replayed first: needs --robot), or folders of them")
     p.add_argument("--json", action="store_true", help="print alerts as JSON lines (one per alert) on stdout")
     p.add_argument("--report", type=Path, metavar="DIR", help="write report.md and PNG trend plots into DIR")
     p.add_argument("--rules", type=Path, metavar="FILE", help="rules file (default: the shipped default.toml)")
     p.add_argument("--baseline", type=int, metavar="N", help="sessions that define normal (default: rules file, 3)")
     p.add_argument("--workers", type=int, metavar="N", help="worker processes (default: CPU count)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from gateway.commands.import_log import add_log_arguments
+
+    add_log_arguments(p.add_argument_group("CAN logs"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,8 +42,15 @@ def run(args: argparse.Namespace) -> int:
     baseline = args.baseline if args.baseline is not None else rules.baseline_sessions
     if baseline < 1:
         raise ValueError("--baseline must be at least 1")
-    result, skipped = analysis.run(args.paths, detectors=rules.detectors or None, baseline_sessions=baseline,
-                                   workers=args.workers, progress=not args.quiet and sys.stderr.isatty())
+    import tempfile
+
+    from gateway.commands.import_log import analyze_logs
+
+    with tempfile.TemporaryDirectory(prefix="bsc-analyze-") as tmp:
+        paths, not_replayed = analyze_logs(args.paths, args, Path(tmp))
+        result, skipped = analysis.run(paths, detectors=rules.detectors or None, baseline_sessions=baseline,
+                                       workers=args.workers, progress=not args.quiet and sys.stderr.isatty())
+    skipped = not_replayed + skipped
     for reason in skipped:
         print(f"bsc analyze: skipped {reason}", file=sys.stderr)
     for ses in result.sessions:

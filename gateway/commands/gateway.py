@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     can_g.add_argument("--channel", "-c", action="append", required=True, metavar="PREFIX|BUS=CHANNEL",
                        help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
     can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD (same frames, bit-rate switch)")
+    from gateway.canbus import add_bus_arguments
+
+    add_bus_arguments(can_g)
     can_g.add_argument("--receive", choices=("auto", "direct", "threads"), default="auto",
                        help="how frames reach the worker: direct (it polls the buses' sockets; the auto choice "
                             "when every bus has one: socketcan, udp_multicast) or threads (one python-can "
@@ -82,23 +85,27 @@ def channels(spec: list[str], buses: list[str], *, every: bool = True) -> dict[s
     return out
 
 
-def open_can(stack, interface: str, chans: dict[str, str], buses: list[str], *, fd: bool = False) -> dict:
+def open_can(stack, interface: str, chans: dict[str, str], buses: list[str], *, fd: bool = False,
+             options=None) -> dict:
     """Open ``chans`` ({bus: channel}) on ``interface`` into the ExitStack ``stack``; a bus that
     cannot open is one UserError line. On ``udp_multicast`` each bus gets the port of its place in
-    ``buses`` (the robot's bus order, ``drivers.wire.udp_port``), as the simulator's firmware sends."""
+    ``buses`` (the robot's bus order, ``drivers.wire.udp_port``), as the simulator's firmware sends.
+    ``options`` (:class:`gateway.canbus.BusOptions`): bit rates and adapter arguments, over
+    python-can's configuration, over the DBC's bit rate."""
     import can
 
     from drivers.wire import udp_port
+    from gateway.canbus import BusOptions, open_bus
     from gateway.cli import UserError
 
+    options = options or BusOptions()
+    options.check(fd)
     out = {}
     for name, ch in chans.items():
-        kw = {"fd": True} if fd else {}
-        if interface == "udp_multicast":
-            kw["port"] = udp_port(buses.index(name))
+        kw = {"port": udp_port(buses.index(name))} if interface == "udp_multicast" else {}
         try:
-            out[name] = stack.enter_context(can.Bus(interface=interface, channel=ch, ignore_config=True, **kw))
-        except (can.CanError, ImportError, ValueError, OSError) as exc:
+            out[name] = stack.enter_context(open_bus(interface, ch, options, fd=fd, **kw))
+        except (can.CanError, ImportError, ValueError, TypeError, OSError) as exc:
             raise UserError(f"cannot open CAN bus {name} ({interface} {ch}): {exc}") from None
     return out
 
@@ -136,7 +143,12 @@ def run(args: argparse.Namespace) -> int:
 
     stop, _ = stop_on_sigterm()           # the process ends with the command
     with contextlib.ExitStack() as stack:
-        buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd)
+        from gateway.canbus import BusOptions
+
+        buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd, options=BusOptions.from_args(args))
+        from gateway.commands.record import bus_rates
+
+        rates = bus_rates(args, chans)
         session = stack.enter_context(zenoh.open(config_from_args(args)))
         rec = None
         if args.record is not None:
@@ -146,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
             rec = stack.enter_context(Recorder(args.record))
             # the layout the filter starts from, so that a replay of this log starts from it too
             rec.add_session_context(**session_context(robot, fd=args.fd,
-                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters)))
+                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters),
+                                                      extra={"bus_rates": rates}))
         timing = SourceTiming(rate=args.source_rate)
         gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
                                                 timing=timing,
@@ -154,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
                                                 publish_samples=not args.no_samples, receive=args.receive))
         freeze_heap()
         print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items())
-              + f" (receive: {gw.receive})", flush=True)
+              + f" (receive: {gw.receive})" + (f"; {rates}" if rates else ""), flush=True)
         try:
             gw.run(stop, args.duration)
         except KeyboardInterrupt:

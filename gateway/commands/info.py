@@ -5,7 +5,8 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="MCAP file written by the bsc recorder (or any MCAP file)")
+    parser.add_argument("file", help="MCAP file written by the bsc recorder (or any MCAP file), or a CAN log "
+                                     "(.log candump, .asc, .blf, .trc, .csv, .gz of them): its channels and frames")
     parser.add_argument("--gap-s", type=float, default=1.0, metavar="S",
                         help="list inter-message gaps longer than S seconds (default 1.0)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -16,6 +17,13 @@ def run(args: argparse.Namespace) -> int:
 
     from gateway.mcaplog import human_size, inspect
 
+    from gateway.engine.canlog import is_can_log
+
+    if is_can_log(args.file):
+        from gateway.commands.import_log import info_lines
+
+        print(info_lines(args.file, as_json=args.json))
+        return 0
     if not args.gap_s > 0:
         raise ValueError(f"--gap-s {args.gap_s}: must be positive")
     info = inspect(args.file, gap_threshold_s=args.gap_s)

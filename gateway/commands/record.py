@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        metavar="PREFIX|BUS=CHANNEL",
                        help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
     can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD")
+    from gateway.canbus import add_bus_arguments
+
+    add_bus_arguments(can_g)
     parser.add_argument("--zenoh", dest="keyexpr", default=None, metavar="KEYEXPR",
                         help="zenoh key expression to record (default bsc/<robot>/**)")
     parser.add_argument("--no-zenoh", action="store_true", help="record CAN only")
@@ -222,6 +225,15 @@ def _positive(name: str, value: float | None) -> None:
         raise UserError(f"{name} {value}: must be positive")
 
 
+def bus_rates(args: argparse.Namespace, chans: dict) -> str:
+    """The bit rates the buses open with (``bsc.session`` ``bus_rates``), "" without CAN."""
+    if not chans:
+        return ""
+    from gateway.canbus import BusOptions, describe
+
+    return describe(BusOptions.from_args(args), args.interface, chans.values(), fd=args.fd)
+
+
 def run(args: argparse.Namespace) -> int:
     import contextlib
     from pathlib import Path
@@ -238,6 +250,9 @@ def run(args: argparse.Namespace) -> int:
     _positive("--split-duration", args.split_duration)
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
+    from gateway.canbus import check_interface
+
+    check_interface(args)
     if args.interface and not args.channel:
         raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
     if args.no_zenoh and not args.interface:
@@ -273,12 +288,16 @@ def run(args: argparse.Namespace) -> int:
                 robot, fd=args.fd, scenario_text=scenario,
                 extra={"command": "bsc record", "interface": args.interface or "",
                        "channels": ",".join(f"{b}={c}" for b, c in chans.items()),
-                       "zenoh_keyexpr": keyexpr or ""}))
+                       "zenoh_keyexpr": keyexpr or "",
+                       "bus_rates": bus_rates(args, chans)}))
             buses = {}
             if chans:
                 from gateway.commands.gateway import open_can
 
-                buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd)
+                from gateway.canbus import BusOptions
+
+                buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd,
+                                 options=BusOptions.from_args(args))
             session = None
             if keyexpr is not None:
                 import zenoh

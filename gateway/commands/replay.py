@@ -20,8 +20,9 @@ import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", nargs="+", help="MCAP log written by bsc record / the gateway; offline "
-                        "(--out) takes any number: each replays into its own folder of DIR, one per process")
+    parser.add_argument("file", nargs="+", help="MCAP log written by bsc record / the gateway, or a CAN log (.log "
+                        "candump, .asc, .blf, .trc, .csv, .gz of them: needs --robot, and --bus); offline (--out) "
+                        "takes any number of MCAP logs: each replays into its own folder of DIR, one per process")
     mode = parser.add_argument_group("mode (exactly one)")
     mode.add_argument("--out", "-o", metavar="DIR",
                       help="offline: replay through drivers + estimator into DIR")
@@ -36,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "(repeatable; buses not named are not played)")
     can_g.add_argument("--fd", action="store_true",
                        help="CAN FD buses (default: as the log says)")
+    from gateway.canbus import add_bus_arguments
+
+    add_bus_arguments(can_g)
     sel = parser.add_argument_group("selection and timing")
     sel.add_argument("--rate", "-r", type=float, default=1.0, metavar="R",
                      help="playback speed factor (default 1; 0 = as fast as possible)")
@@ -56,7 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="live playback (--interface, --zenoh): " + RT_PRIORITY_HELP)
     off = parser.add_argument_group("offline")
     off.add_argument("--robot", default=None, metavar="NAME|FILE",
-                     help="robot description (default: the log's robot.urdf attachment)")
+                     help="robot description (default: the log's robot.urdf attachment; required for a CAN log)")
+    from gateway.commands.import_log import BUS_HELP
+
+    off.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL", help="a CAN log: " + BUS_HELP)
     off.add_argument("--model", default=None, metavar="NAME|FILE",
                      help="the estimator's robot model, if not the robot's own")
     off.add_argument("--copy-can", action="store_true",
@@ -82,6 +89,12 @@ def _warn(text: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from gateway.engine.canlog import is_can_log
+
+    if isinstance(args.file, str):         # run again by replay_can_log on the imported session
+        args.file = [args.file]
+    if args.bus and not any(is_can_log(f) for f in args.file):
+        raise ValueError("--bus maps the channels of a CAN log (.log, .asc, .blf, .trc, .csv); an MCAP log has buses")
     from gateway.cli import UserError
     from gateway.replay import parse_can_ids
 
@@ -96,12 +109,23 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
+    from gateway.canbus import check_interface
+
+    check_interface(args)
     can_ids = parse_can_ids(args.can_id) if args.can_id else None
     from gateway.commands import check_rt_priority
 
     check_rt_priority(args.rt_priority)
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers {args.workers}: must be at least 1")
+    if any(is_can_log(f) for f in args.file):      # the options checked: import it, then replay that
+        if len(args.file) > 1:
+            raise UserError("CAN logs replay one at a time (or `bsc import` each into a session, then replay "
+                            "the sessions together)")
+        from gateway.commands.import_log import replay_can_log
+
+        args.file = args.file[0]
+        return replay_can_log(args, run)
     if args.out is not None:
         if args.rt_priority:
             raise UserError("--rt-priority is for live playback (--interface, --zenoh), not --out")
@@ -212,7 +236,10 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
         with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
             ctx = read_context(src)
             chans = channels(args.channel, list(ctx.buses), every=False)
-            buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd)
+            from gateway.canbus import BusOptions
+
+            buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd,
+                             options=BusOptions.from_args(args))
             set_rt_priority(args.rt_priority)
             stats = play_can(src, buses, rate=args.rate, loop=args.loop, start_s=args.start,
                              duration_s=args.duration, can_ids=can_ids,

@@ -51,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable; "
                             "default prefix bsc)")
     can_g.add_argument("--fd", action="store_true", help="send CAN FD frames (same payloads, bit-rate switch)")
+    from gateway.canbus import add_bus_arguments
+
+    add_bus_arguments(can_g)
     can_g.add_argument("--realtime", action="store_true",
                        help="pace each 1 ms step to the wall clock and stamp frames at send "
                             "(default: lockstep, as fast as possible, simulated-time stamps)")
@@ -104,7 +107,8 @@ def faults_from(args: argparse.Namespace, table) -> "object":
 
 
 def _uses_can(args: argparse.Namespace) -> bool:
-    return bool(args.channel or args.fd or args.realtime or args.silent or args.counter_jump
+    return bool(args.channel or args.fd or args.realtime or args.silent or args.counter_jump or args.bus_kwarg
+                or args.bitrate is not None or args.data_bitrate is not None
                 or args.fault_seed is not None
                 or any(getattr(args, f"{n}_rate") is not None for n in ("drop", "duplicate", "reorder", "corrupt", "bad_dlc")))
 
@@ -126,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     if args.robot:
         overrides["robot"] = args.robot
     if args.interface is None and _uses_can(args):
-        raise ValueError("--channel, --fd, --realtime and the fault options need --interface")
+        raise ValueError("--channel, --fd, --realtime, the bus options and the fault options need --interface")
     if args.rt_priority and not args.realtime:
         raise ValueError("--rt-priority needs --realtime")
     from gateway.commands import check_rt_priority
@@ -189,8 +193,12 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
     chans = channels(args.channel or ["bsc"], list(fw.wire.buses))
     try:
         # a FirmwareError (a channel that cannot work) is a ValueError: one line, exit 2
-        buses = firmware.open_buses(sim.robot, args.interface, chans, fd=args.fd)
-    except (can.CanError, ImportError, NotImplementedError, OSError) as exc:
+        from gateway.canbus import BusOptions
+
+        options = BusOptions.from_args(args)
+        options.check(args.fd)
+        buses = firmware.open_buses(sim.robot, args.interface, chans, fd=args.fd, options=options)
+    except (can.CanError, ImportError, NotImplementedError, OSError, TypeError) as exc:
         raise UserError(f"cannot open the CAN buses on {args.interface} ({', '.join(chans.values())}): {exc}") from None
     with buses:
         from gateway.commands import set_rt_priority

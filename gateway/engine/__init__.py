@@ -1,6 +1,7 @@
 """The session engine: one runner for every way frames reach the gateway.
 
-Sources (live CAN buses, a recorded log, the simulator's firmware) feed a :class:`Session`, which
+Sources (live CAN buses, a recorded log, another tool's CAN log through :mod:`.canlog`, the
+simulator's firmware) feed a :class:`Session`, which
 owns the pipeline (drivers + estimator), the log time, raw-frame recording, the health cadence and
 the end of input; sinks (the zenoh publisher, a recorder, an in-memory collector) take what it
 emits. ``bsc gateway``, ``bsc replay``, ``bsc demo`` and the simulated series all run it, so live

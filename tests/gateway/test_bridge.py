@@ -227,7 +227,8 @@ def test_open_can_gives_each_bus_its_udp_port_by_robot_order(monkeypatch):
     with contextlib.ExitStack() as stack:
         open_can(stack, "udp_multicast", chans, buses, fd=True)
     assert opened == {"239.74.163.3": {"interface": "udp_multicast", "channel": "239.74.163.3",
-                                       "ignore_config": True, "fd": True, "port": wire.udp_port(2)}}
+                                       "ignore_config": True, "fd": True, "port": wire.udp_port(2),
+                                       "bitrate": wire.BITRATE, "data_bitrate": wire.FD_DATA_BITRATE}}
     from gateway.cli import UserError
     with pytest.raises(UserError, match="missing arm1, spacecraft"):
         channels(["arm0=can0"], buses)

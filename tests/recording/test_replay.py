@@ -744,3 +744,16 @@ def test_time_ordered_keeps_ties_and_bounds_its_window():
     # a message read more than the window after newer ones went out: sent as soon as it is read
     late = [("b", 10, 1), ("a", 5_000, 2), ("a", 7_000, 3), ("b", 20, 4)]
     assert [o for _, _, o in rp._time_ordered(iter(late), window_ns=1_000)] == [1, 2, 4, 3]
+
+
+def test_several_can_logs_are_replayed_one_at_a_time(tmp_path, capsys):
+    """Many MCAP logs replay on every core; CAN logs are imported one at a time (each needs its
+    own channel mapping), so several at once is one line naming bsc import."""
+    from gateway.cli import main
+
+    logs = [tmp_path / "a.log", tmp_path / "b.log"]
+    for p in logs:
+        p.write_text("(1.000000) can0 123#01\n")
+    assert main(["replay", *map(str, logs), "--out", str(tmp_path / "o"), "--robot", ROBOT,
+                 "--bus", "arm0=can0"]) == 2
+    assert "CAN logs replay one at a time (or `bsc import` each" in capsys.readouterr().err
