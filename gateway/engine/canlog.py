@@ -119,6 +119,7 @@ class ImportStats:
     last_ns: int | None = None
     min_ns: int | None = None
     max_ns: int | None = None
+    unfed: list = dataclasses.field(default_factory=list)               # robot buses no channel maps to
 
     @property
     def span_s(self) -> float:
@@ -154,6 +155,10 @@ class ImportStats:
     def warnings(self) -> list[str]:
         """One line per thing the user should know about the input."""
         out = []
+        if self.unfed:
+            out.append(f"no channel maps to the robot's bus {', '.join(self.unfed)}: its devices get no frame and "
+                       "no effort can be good (map it with " + " ".join(f"--bus {b}=CHANNEL" for b in self.unfed)
+                       + f"; channels found: {self.found()})")
         if self.unmapped:
             out.append("left out (channel maps to no bus): " + ", ".join(
                 f"channel {c} {n} frames" for c, n in sorted(self.unmapped.items())))
@@ -373,6 +378,9 @@ def _check_mapping(path, stats: ImportStats, buses: Sequence[str], bus_map: Mapp
     if stats.frames_written == 0:
         raise CanLogError(f"{path}: no channel maps to a bus of the robot (buses "
                           f"{', '.join(buses)}); channels found: {stats.found()}; map them with {hint}")
+    # a bus of the robot with no channel: legitimate (a CSV log holds one bus), but its devices get
+    # nothing and no effort can be good, so the user is told which and how to map it
+    stats.unfed = [b for b in buses if b not in set(stats.channels.values())]
 
 
 def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot, *,

@@ -158,7 +158,13 @@ def test_a_log_needs_a_robot_and_a_mapping_and_says_what_it_holds(candump, tmp_p
 def test_a_channel_mapped_to_no_bus_is_counted(candump, tmp_path, capsys):
     _, report = replay(tmp_path, "two", candump, "--robot", "paper_robot", "--bus", "arm0=can0", "--bus", "arm1=can1")
     assert report["import"]["unmapped"] == {"can2": report["import"]["by_channel"]["can2"]}
-    assert "left out (channel maps to no bus): channel can2" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "left out (channel maps to no bus): channel can2" in err
+    # the robot's bus that got nothing is named, with what it means and how to map it
+    assert report["import"]["unfed"] == ["spacecraft"]
+    assert ("no channel maps to the robot's bus spacecraft: its devices get no frame and no effort can be good "
+            "(map it with --bus spacecraft=CHANNEL; channels found: can0") in err
+    assert report["good_efforts"] == 0
 
 
 def write_bad_log(path: Path) -> dict:
