@@ -9,12 +9,14 @@ import importlib
 import os
 import sys
 
-# name -> (module in gateway.commands, one-line help). Imported only when chosen.
+# name -> (module in gateway.commands, or a full module path, one-line help). Imported only when
+# chosen: the harness's commands (demo, sim: they run the simulator) are found by name, so the
+# product never imports the harness or the simulator, and an install without them says so.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("demo", "the main job: the paper's capture scenario end to end, with report and figures"),
+    "demo": ("harness.commands.demo", "the main job: the paper's capture scenario end to end, with report and figures"),
     "gateway": ("gateway", "drivers and estimator of a robot: samples, efforts and health over zenoh"),
     "budget": ("budget", "print the worst-case CAN bus load per bus of a robot at nominal rates"),
-    "sim": ("sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
+    "sim": ("harness.commands.sim", "run the simulated space robot (lockstep) and write its truth trace and plots"),
     "info": ("info", "summarise an MCAP log: channels, rates, gaps, metadata, complete or truncated"),
     "recover": ("recover", "salvage a truncated MCAP log (crash, kill, full disk) into a valid file"),
     "record": ("record", "record a session to MCAP: raw CAN frames per bus and every zenoh sample"),
@@ -64,7 +66,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def _load(module: str):
-    return importlib.import_module(f"gateway.commands.{module}")
+    return importlib.import_module(module if "." in module else f"gateway.commands.{module}")
 
 
 def main(argv: list[str] | None = None) -> int:

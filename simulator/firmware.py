@@ -458,7 +458,7 @@ def bus_channels(robot, channel: str | Mapping[str, str]) -> dict[str, str]:
 def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool = False, options=None,
                **kw) -> BusSet:
     """One python-can bus per bus of the robot (WireMap order), opened with
-    ``ignore_config=True``, or (``options``, a :class:`gateway.canbus.BusOptions`: a command
+    ``ignore_config=True``, or (``options``, a :class:`drivers.canbus.BusOptions`: a command
     line's) with its bit rates and adapter arguments over python-can's configuration. ``virtual`` buses keep the frames' timestamps
     (``preserve_timestamps=True``); ``udp_multicast`` buses get one port each (:func:`udp_port`)
     unless ``port`` is given. Extra keyword arguments go to every ``can.Bus``. On failure the
@@ -482,7 +482,7 @@ def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool
                                         f"such as 239.74.163.1, not {ch!r} (give BUS=GROUP for every bus)")
                 opts.setdefault("port", udp_port(i))
             if options is not None:
-                from gateway.canbus import open_bus
+                from drivers.canbus import open_bus
 
                 opts.pop("fd", None)
                 buses[name] = open_bus(interface, ch, options, fd=fd, **opts)

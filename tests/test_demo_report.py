@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gateway import demo
+from harness import demo
 from gateway.cli import EXIT_OK, EXIT_TARGETS_MISSED
-from gateway.commands.demo import exit_status
+from harness.commands.demo import exit_status
 
 N = 2000
 JOINTS = ["arm0/j1", "arm0/j2", "left_manipulator/shoulder_yaw", "left_manipulator/elbow_pitch_actuator"]

@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     can_g.add_argument("--channel", "-c", action="append", required=True, metavar="PREFIX|BUS=CHANNEL",
                        help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
     can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD (same frames, bit-rate switch)")
-    from gateway.canbus import add_bus_arguments
+    from drivers.canbus import add_bus_arguments
 
     add_bus_arguments(can_g)
     can_g.add_argument("--receive", choices=("auto", "direct", "threads"), default="auto",
@@ -90,12 +90,12 @@ def open_can(stack, interface: str, chans: dict[str, str], buses: list[str], *, 
     """Open ``chans`` ({bus: channel}) on ``interface`` into the ExitStack ``stack``; a bus that
     cannot open is one UserError line. On ``udp_multicast`` each bus gets the port of its place in
     ``buses`` (the robot's bus order, ``drivers.wire.udp_port``), as the simulator's firmware sends.
-    ``options`` (:class:`gateway.canbus.BusOptions`): bit rates and adapter arguments, over
+    ``options`` (:class:`drivers.canbus.BusOptions`): bit rates and adapter arguments, over
     python-can's configuration, over the DBC's bit rate."""
     import can
 
     from drivers.wire import udp_port
-    from gateway.canbus import BusOptions, open_bus
+    from drivers.canbus import BusOptions, open_bus
     from gateway.cli import UserError
 
     options = options or BusOptions()
@@ -143,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
 
     stop, _ = stop_on_sigterm()           # the process ends with the command
     with contextlib.ExitStack() as stack:
-        from gateway.canbus import BusOptions
+        from drivers.canbus import BusOptions
 
         buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd, options=BusOptions.from_args(args))
         from gateway.commands.record import bus_rates

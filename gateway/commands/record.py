@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        metavar="PREFIX|BUS=CHANNEL",
                        help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
     can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD")
-    from gateway.canbus import add_bus_arguments
+    from drivers.canbus import add_bus_arguments
 
     add_bus_arguments(can_g)
     parser.add_argument("--zenoh", dest="keyexpr", default=None, metavar="KEYEXPR",
@@ -229,7 +229,7 @@ def bus_rates(args: argparse.Namespace, chans: dict) -> str:
     """The bit rates the buses open with (``bsc.session`` ``bus_rates``), "" without CAN."""
     if not chans:
         return ""
-    from gateway.canbus import BusOptions, describe
+    from drivers.canbus import BusOptions, describe
 
     return describe(BusOptions.from_args(args), args.interface, chans.values(), fd=args.fd)
 
@@ -250,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
     _positive("--split-duration", args.split_duration)
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
-    from gateway.canbus import check_interface
+    from drivers.canbus import check_interface
 
     check_interface(args)
     if args.interface and not args.channel:
@@ -294,7 +294,7 @@ def run(args: argparse.Namespace) -> int:
             if chans:
                 from gateway.commands.gateway import open_can
 
-                from gateway.canbus import BusOptions
+                from drivers.canbus import BusOptions
 
                 buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd,
                                  options=BusOptions.from_args(args))

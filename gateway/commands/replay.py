@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "(repeatable; buses not named are not played)")
     can_g.add_argument("--fd", action="store_true",
                        help="CAN FD buses (default: as the log says)")
-    from gateway.canbus import add_bus_arguments
+    from drivers.canbus import add_bus_arguments
 
     add_bus_arguments(can_g)
     sel = parser.add_argument_group("selection and timing")
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
-    from gateway.canbus import check_interface
+    from drivers.canbus import check_interface
 
     check_interface(args)
     can_ids = parse_can_ids(args.can_id) if args.can_id else None
@@ -236,7 +236,7 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
         with readable(args.file, _warn) as src, contextlib.ExitStack() as stack:
             ctx = read_context(src)
             chans = channels(args.channel, list(ctx.buses), every=False)
-            from gateway.canbus import BusOptions
+            from drivers.canbus import BusOptions
 
             buses = open_can(stack, args.interface, chans, list(ctx.buses), fd=args.fd or ctx.fd,
                              options=BusOptions.from_args(args))

@@ -11,7 +11,7 @@ import numpy as np
 from gateway import keys
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.recorder import Recorder
-from gateway.series import EPOCH_NS, SERIES_METADATA, SESSION_SPACING_NS
+from harness.series import EPOCH_NS, SERIES_METADATA, SESSION_SPACING_NS
 
 ROBOT = "synthbot"
 ARMS = {"arm0": ("arm0/j1", "arm0/j2"), "arm1": ("arm1/j1", "arm1/j2")}

@@ -16,7 +16,7 @@ import json
 import pytest
 
 from gateway import analysis
-from gateway.series import SERIES, default_onset, session_toml, write_series
+from harness.series import SERIES, default_onset, session_toml, write_series
 
 N = 5
 DURATION_S = 6.0

@@ -143,7 +143,7 @@ def test_every_command_that_opens_a_bus_takes_the_flags(plugin, session, tmp_pat
     from gateway.replay import read_context
 
     assert read_context(tmp_path / "r.mcap").session["bus_rates"] == "bitrate 500000"   # the log says
-    from gateway.canbus import BusOptions
+    from drivers.canbus import BusOptions
     from gateway.cli import build_parser
 
     argv = ["gateway", "-i", "pcan", "-c", "bsc", "-b", "1M", "--data-bitrate", "8M", "--fd", "--bus-kwarg", "x=1"]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import robot_description
-from gateway import demo
+from harness import demo
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.pipeline import Pipeline
 from simulator import scenario

@@ -164,7 +164,7 @@ def test_the_estimator_believes_the_custom_layout(custom_file):
     """The demo's path (simulator -> firmware frames -> drivers + estimator): with the
     scenario's layout the thruster wrench is estimated; with another 16-thruster layout
     (ring18's first sixteen) it is not, so the layout really is what the estimator uses."""
-    from gateway import demo
+    from harness import demo
 
     sc = scenario.load(custom_file, {"duration_s": 1.5})
     ring = ThrusterLayout.named()

@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable; "
                             "default prefix bsc)")
     can_g.add_argument("--fd", action="store_true", help="send CAN FD frames (same payloads, bit-rate switch)")
-    from gateway.canbus import add_bus_arguments
+    from drivers.canbus import add_bus_arguments
 
     add_bus_arguments(can_g)
     can_g.add_argument("--realtime", action="store_true",
@@ -116,7 +116,7 @@ def _uses_can(args: argparse.Namespace) -> bool:
 def run(args: argparse.Namespace) -> int:
     if args.series is not None:
         return _run_series(args)
-    from gateway import demo
+    from harness import demo
     from simulator import plots, scenario
     from simulator.engine import Simulation
 
@@ -193,7 +193,7 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
     chans = channels(args.channel or ["bsc"], list(fw.wire.buses))
     try:
         # a FirmwareError (a channel that cannot work) is a ValueError: one line, exit 2
-        from gateway.canbus import BusOptions
+        from drivers.canbus import BusOptions
 
         options = BusOptions.from_args(args)
         options.check(args.fd)
@@ -214,7 +214,7 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
 
 
 def _run_series(args: argparse.Namespace) -> int:
-    from gateway.series import DEFAULT_DURATION_S, SERIES, write_series
+    from harness.series import DEFAULT_DURATION_S, SERIES, write_series
 
     if args.series not in SERIES:
         raise ValueError(f"--series {args.series!r}: choose one of {', '.join(SERIES)}")

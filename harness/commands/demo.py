@@ -11,9 +11,9 @@ wrong model), ``session.mcap`` (raw frames, samples, efforts, URDF, DBCs, scenar
 
 While the live run goes, the noise sweep's other points (x0.5, x2, x4: each its own simulation)
 run in two worker processes through the same drivers + estimator without buses or zenoh
-(:func:`gateway.demo.run_offline`); the wrong-model run then feeds the live run's own frames (the
+(:func:`harness.demo.run_offline`); the wrong-model run then feeds the live run's own frames (the
 nominal simulation, frame for frame) to a pipeline whose model is 5 % off
-(:func:`gateway.demo.run_frames`). ``report.json`` ``timings`` says where the wall time went.
+(:func:`harness.demo.run_frames`). ``report.json`` ``timings`` says where the wall time went.
 
 Exit status: 0 when every judged figure meets its target, 3 (``EXIT_TARGETS_MISSED``) when one
 misses, so that CI fails on an accuracy regression; ``--report-only`` reports misses and exits 0.
@@ -57,7 +57,7 @@ def _sweep_one(job):
     import time
 
     import robot_description
-    from gateway import demo
+    from harness import demo
     from simulator import scenario
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -84,7 +84,7 @@ def exit_status(acc: dict, report_only: bool = False) -> int:
 
 def _figure_notes(acc: dict) -> tuple[list[str], dict[str, str]]:
     """Panel titles: the accuracy figures next to the curves they describe."""
-    from gateway.demo import BAND_HZ, pct
+    from harness.demo import BAND_HZ, pct
 
     band = acc["band_limited_20hz"]
     thr = []
@@ -103,7 +103,7 @@ def _figure_notes(acc: dict) -> tuple[list[str], dict[str, str]]:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from gateway import demo
+    from harness import demo
     from simulator import plots, scenario
 
     overrides = {}
@@ -213,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _sweep_table(report: dict) -> str:
     """Worst judged NRMSE per kind for each noise scale and for the 5 % wrong model."""
-    from gateway.demo import columns, pct
+    from harness.demo import columns, pct
 
     rows = [("worst judged NRMSE", "force", "moment", "simplified, 1st joints", "full")]
     cases = [(f"noise {k}", v) for k, v in report["noise_sweep"].items()]

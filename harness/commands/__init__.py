@@ -1,0 +1,1 @@
+"""The harness's ``bsc`` subcommands (``bsc demo``, ``bsc sim``), loaded by name by ``gateway.cli``."""
