@@ -22,11 +22,12 @@ use its anchor whether it runs alone or inside the suite (which measures all fou
 from __future__ import annotations
 
 import os
-import socket
 import statistics
 import threading
 import time
 from typing import Callable
+
+from gateway.zenoh_config import free_port
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -89,11 +90,6 @@ def cantools_decode(quick: bool = False) -> dict:
     return row("cantools_decode", value, "frames/s", note=f"{len(pairs)} frames, best of 3")
 
 
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def zenoh_sessions(port: int | None = None):

@@ -15,7 +15,6 @@ import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 
 from drivers import batch, devices, frames, wire  # noqa: E402
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample  # noqa: E402
@@ -37,7 +36,8 @@ def arm_frames(n_cycles: int):
 def sc_frames(n_cycles: int):
     msgs = []
     for c in range(n_cycles):
-        msgs += frames.encode_imu(ImuSample(c * 2_000_000, c, (1.0, 0.0, 0.0, 0.0), (0.01, 0.02, 0.03), (0.1, 0.0, 0.0)))
+        msgs += frames.encode_imu(ImuSample(c * 2_000_000, c, (1.0, 0.0, 0.0, 0.0), (0.01, 0.02, 0.03),
+                                            (0.1, 0.0, 0.0)))
         if c % 5 == 0:
             msgs += frames.encode_thruster(ThrusterCommand(c, c // 5, (1.0, 2.0, 3.0), (0.0, 0.0, 1.0), 5))
     return msgs

@@ -69,6 +69,8 @@ import time
 import uuid
 from pathlib import Path
 
+from gateway.zenoh_config import free_port
+
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -324,7 +326,8 @@ def role_gateway(a) -> int:
         from gateway import keys as _keys
         from gateway.engine import Sink
 
-        effort_keys = [_keys.joint_efforts(robot.name, a.name) for a in robot.arms] + [_keys.thruster_effort(robot.name)]
+        effort_keys = ([_keys.joint_efforts(robot.name, a.name) for a in robot.arms]
+                       + [_keys.thruster_effort(robot.name)])
         batch_wake: dict[int, int] = {}                   # arrival ns -> received, this batch
         emitted: list = []                                # (rows' t_ns, their completing frames' stamps, t)
 
@@ -575,12 +578,6 @@ def private_netns():
         _ip("netns", "delete", name)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class _Child:
     def __init__(self, role: str, prefix: list[str], args: list[str], env: dict):
         self.role = role
@@ -668,7 +665,7 @@ def measure(seconds: float = 10.0, *, pacing: str = "burst", subscribe: str = "e
         prefix = ["ip", "netns", "exec", ns] if ns else []
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bsc-lat-")))
         ep, ep2 = (("tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448") if ns else
-                   (f"tcp/127.0.0.1:{_free_port()}", f"tcp/127.0.0.1:{_free_port()}"))
+                   (f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"))
         children: dict[str, _Child] = {}
 
         def start(role, *args):
@@ -984,7 +981,8 @@ def main(argv=None) -> int:
     res = analyse(measure(a.seconds, pacing=a.pacing, subscribe=a.subscribe, transport=a.transport,
                           topology=a.topology, router=a.router, source=a.source, bare=a.bare,
                           switch_interval=a.switch_interval, nice=a.nice, slowdown=a.slowdown,
-                          samples=not a.no_samples, receive=a.receive, progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
+                          samples=not a.no_samples, receive=a.receive,
+                          progress=None if a.json else (lambda s: print(s, file=sys.stderr, flush=True))))
     print(json.dumps(res, indent=1) if a.json else report(res))
     return 0
 

@@ -294,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"robot {wm.robot} ({len(wm.buses)} buses), seed {a.seed}, fd={a.fd}")
     print(f"frames      {rep.frames}  ({', '.join(f'{k} {v}' for k, v in sorted(rep.kinds.items()))})")
     print(f"throughput  {rep.frames_per_s:,.0f} frames/s through every listener ({rep.seconds:.1f} s)")
-    print(f"samples     {rep.samples} accepted, {rep.bad_samples} breaking an invariant; lost (counter gaps) {rep.lost}")
+    print(f"samples     {rep.samples} accepted, {rep.bad_samples} breaking an invariant; "
+          f"lost (counter gaps) {rep.lost}")
     print(f"exceptions  {sum(rep.exceptions.values())}" + (f"  {dict(rep.exceptions)}" if rep.exceptions else ""))
     if rep.first_failure:
         print(f"first       {rep.first_failure}")

@@ -270,7 +270,8 @@ def _ok(v) -> str:
 def header_lines(doc: dict) -> list[str]:
     m = doc["machine"]
     v = m["versions"]
-    cores = f"{m['cores']} cores" + (f" ({m['cores_usable']} usable)" if m.get("cores_usable") not in (None, m["cores"]) else "")
+    usable = m.get("cores_usable")
+    cores = f"{m['cores']} cores" + (f" ({usable} usable)" if usable not in (None, m["cores"]) else "")
     load = lambda x: " ".join(f"{a:.2f}" for a in x) if x else "?"  # noqa: E731
     return [
         f"bsc benchmarks{' (--quick)' if doc['quick'] else ''}: {m['date']}"

@@ -14,6 +14,9 @@ an application name, a timing register, ...). What a bus is opened with, key by 
    :data:`drivers.wire.FD_DATA_BITRATE`, unless a bit timing (``timing``, ``f_clock``...) is
    configured instead.
 
+The drivers themselves are given their buses, never open one (any interface swaps in); this is
+what the commands and the simulated firmware open them with.
+
 Interfaces whose bit rate the operating system sets (socketcan: ``ip link set can0 type can
 bitrate 1000000``) ignore it; the virtual and UDP interfaces have none.
 """

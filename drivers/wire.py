@@ -143,7 +143,8 @@ def _layout(msg) -> Layout:
     fmt, pos = ">", 0
     sigs = sorted(msg.signals, key=lambda s: s.start)
     for s in sigs:
-        if s.byte_order != "big_endian" or s.start % 8 != 7 or (s.start // 8) != pos or (s.length, s.is_signed) not in _FMT:
+        if (s.byte_order != "big_endian" or s.start % 8 != 7 or (s.start // 8) != pos
+                or (s.length, s.is_signed) not in _FMT):
             raise WireError(f"{msg.name}.{s.name}: not a byte-aligned big-endian 8/16/24/32-bit field at byte {pos}")
         if s.offset != 0:
             raise WireError(f"{msg.name}.{s.name}: offsets are not used by this contract")
@@ -195,7 +196,8 @@ def _check_ids() -> None:
         if i not in arm or arm[i].name != n:
             raise WireError(f"bsc_arm.dbc: expected {n} at 0x{i:03X}")
     expect = {THRUSTER_FORCE_ID: "THRUSTER_CMD_FORCE", THRUSTER_MOMENT_ID: "THRUSTER_CMD_MOMENT",
-              THRUSTER_VALVES_ID: "THRUSTER_CMD_VALVES", VALVE_CMD_ID: "THRUSTER_VALVE_CMD", IMU_TIME_ID: "IMU_SAMPLE_TIME", IMU_STATUS_ID: "IMU_STATUS",
+              THRUSTER_VALVES_ID: "THRUSTER_CMD_VALVES", VALVE_CMD_ID: "THRUSTER_VALVE_CMD",
+              IMU_TIME_ID: "IMU_SAMPLE_TIME", IMU_STATUS_ID: "IMU_STATUS",
               IMU_QUAT_WX_ID: "IMU_QUAT_WX", IMU_QUAT_YZ_ID: "IMU_QUAT_YZ", IMU_RATE_ID: "IMU_RATE_OF_TURN",
               IMU_ACCEL_ID: "IMU_ACCELERATION"}
     for i, n in expect.items():

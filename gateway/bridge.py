@@ -4,7 +4,8 @@
 the caller) and an open zenoh session; it owns only the notifiers, the worker thread and the
 publishers it creates. Lifecycle::
 
-    with GatewayService(robot, buses, session) as gw:     # robot: robot_description.Robot   # start(): notifiers + worker running
+    # robot: robot_description.Robot; start(): notifiers + worker running
+    with GatewayService(robot, buses, session) as gw:
         gw.run(stop_event)                                  # health every health_period_s
     # close(): notifiers stopped, worker drained, publishers undeclared (harmless twice)
 

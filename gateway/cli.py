@@ -33,7 +33,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 EXIT_OK = 0
 EXIT_FAILURE = 1            # a bug or an unexpected failure (one line; --debug for the traceback)
 EXIT_USAGE = 2              # an error the user can fix: bad option, bad file
-EXIT_TARGETS_MISSED = 3     # the run completed, and its judged results missed their targets (bsc demo; bsc replay --check)
+EXIT_TARGETS_MISSED = 3     # the run completed, and its judged results missed their targets
+#                             (bsc demo; bsc replay --check)
 EXIT_INTERRUPTED = 130      # Ctrl-C, as a shell reports SIGINT
 
 

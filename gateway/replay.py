@@ -48,7 +48,7 @@ from gateway import mcaplog
 from gateway.mcaplog import McapFileError
 from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX,
                               RECORDING_METADATA, SCENARIO_ATTACHMENT, SESSION_METADATA,
-                              URDF_ATTACHMENT, ZENOH_KEYS_METADATA, can_frame_from_record)
+                              URDF_ATTACHMENT, can_frame_from_record)
 
 REPORT_NAME = "report.json"
 OUTPUT_NAME = "replay.mcap"

@@ -57,3 +57,13 @@ def make_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_
 def config_from_args(args: argparse.Namespace):
     return make_config(connect=args.connect, listen=args.listen, config_file=args.config, mode=args.mode,
                        multicast_scouting=args.multicast_scouting)
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on now, chosen by the OS (for a zenoh endpoint
+    of a test, a benchmark or the demo; another process may take it before it is used)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.zenoh_config import free_port
 
 AXES = ("fx", "fy", "fz", "mx", "my", "mz")
 LOCKSTEP_NS = 5_000_000               # lockstep check every 5 ms of simulated time (see run_live)
@@ -133,14 +134,6 @@ def run_frames(robot, frames, n_steps: int, *, model_robot=None, layout=None):
         feed(bus, msg)
     ses.close()
     return col.est, ses.stats
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class _CountingBus:

@@ -113,7 +113,8 @@ class ThrusterLayout:
         for i, row in enumerate(rows):
             at = f"{where}[{i}]"
             if not isinstance(row, dict):
-                raise ThrusterLayoutError(f"{at}: must be a table with pos_m, dir and optional max_thrust_n, got {row!r}")
+                raise ThrusterLayoutError(f"{at}: must be a table with pos_m, dir and optional max_thrust_n, "
+                                          f"got {row!r}")
             for key in row:
                 if key not in ROW_KEYS:
                     raise ThrusterLayoutError(f"{at}: unknown key {key!r} (a thruster has pos_m, dir, max_thrust_n)")

@@ -403,7 +403,8 @@ class _SensorMap:
         c, s = np.cos(th), np.sin(th)
         x, y, z = self.axis
         K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-        Rj = c[:, None, None] * np.eye(3) + s[:, None, None] * K + (1.0 - c)[:, None, None] * np.outer(self.axis, self.axis)
+        Rj = (c[:, None, None] * np.eye(3) + s[:, None, None] * K
+              + (1.0 - c)[:, None, None] * np.outer(self.axis, self.axis))
         aligned = np.flatnonzero(np.abs(self.axis) == 1.0)
         if aligned.size:
             Rj[:, aligned[0], aligned[0]] = 1.0       # exact, as for Pinocchio's RX/RY/RZ joints

@@ -114,11 +114,13 @@ class Faults:
         known = {f.name for f in fields(cls)}
         unknown = set(table) - known
         if unknown:
-            raise FirmwareError(f"faults: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(known))})")
+            raise FirmwareError(f"faults: unknown key(s) {', '.join(sorted(unknown))} "
+                                f"(known: {', '.join(sorted(known))})")
         for key, n in (("silent", 3), ("counter_jumps", 3)):
             rows = table.get(key, ())
             if any(not isinstance(r, (list, tuple)) or len(r) != n for r in rows):
-                raise FirmwareError(f"faults: {key} rows are [device, time_s, {'duration_s' if key == 'silent' else 'jump'}]")
+                third = "duration_s" if key == "silent" else "jump"
+                raise FirmwareError(f"faults: {key} rows are [device, time_s, {third}]")
             table[key] = tuple(tuple(r) for r in rows)
         return cls(**table)
 
@@ -293,7 +295,8 @@ class Firmware:
                 t, self._counter(st, t), tuple(map(float, quat)), tuple(map(float, rate)), tuple(map(float, acc)),
                 saturated=bool(sat)), fd=fd))
         st = self._streams["valves"]
-        self._emit(out, st, t, [frames.encode_valves(ValveCommand(t, self._counter(st, t), valve_mask(readings.valves)), fd)])
+        valves = ValveCommand(t, self._counter(st, t), valve_mask(readings.valves))
+        self._emit(out, st, t, [frames.encode_valves(valves, fd)])
         if self._thruster is not None and t % self._cycle_ns[wire.THRUSTER_FORCE_ID] == 0:
             w = self._thruster
             st = self._streams["thrusters"]
@@ -341,7 +344,8 @@ class Firmware:
         if not self._random:
             return None, 0.0, 0.0
         u, v, w = self._rng.random(), self._rng.random(), self._rng.random()
-        if not self._from_ns <= t < self._until_ns or st.held:     # the sample that overtakes a reordered one goes clean
+        # the sample that overtakes a reordered one goes clean
+        if not self._from_ns <= t < self._until_ns or st.held:
             return None, v, w
         acc = 0.0
         for name in Faults.RATES:
@@ -459,10 +463,11 @@ def open_buses(robot, interface: str, channel: str | Mapping[str, str], fd: bool
                **kw) -> BusSet:
     """One python-can bus per bus of the robot (WireMap order), opened with
     ``ignore_config=True``, or (``options``, a :class:`drivers.canbus.BusOptions`: a command
-    line's) with its bit rates and adapter arguments over python-can's configuration. ``virtual`` buses keep the frames' timestamps
-    (``preserve_timestamps=True``); ``udp_multicast`` buses get one port each (:func:`udp_port`)
-    unless ``port`` is given. Extra keyword arguments go to every ``can.Bus``. On failure the
-    buses already open are shut down and the python-can error propagates."""
+    line's) with its bit rates and adapter arguments over python-can's configuration. ``virtual``
+    buses keep the frames' timestamps (``preserve_timestamps=True``); ``udp_multicast`` buses get
+    one port each (:func:`udp_port`) unless ``port`` is given. Extra keyword arguments go to
+    every ``can.Bus``. On failure the buses already open are shut down and the python-can error
+    propagates."""
     chans = bus_channels(robot, channel)
     buses = BusSet()
     try:

@@ -12,7 +12,6 @@ degradation), bias and misalignment.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import scipy

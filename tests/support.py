@@ -2,16 +2,10 @@
 tests folder on ``sys.path``). Nothing here knows one package's internals."""
 from __future__ import annotations
 
-import socket
 import time
 from typing import Callable
 
-
-def free_port() -> int:
-    """A TCP port on loopback that nothing listens on now (for a zenoh endpoint)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from gateway.zenoh_config import free_port  # noqa: F401 - the one loopback port helper, for the tests
 
 
 def wait_until(cond: Callable[[], bool], what: str, timeout_s: float = 30.0, poll_s: float = 0.005) -> None:

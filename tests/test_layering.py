@@ -1,6 +1,7 @@
-"""The layering of the tree, as import-linter checks it (contracts in pyproject.toml): the
-product (drivers, gateway) never imports the simulator or the harness, the drivers never the
-gateway, the simulator never the gateway. A deployment beside a real robot runs the product alone."""
+"""The house's checks, as the test suite runs them: the layering of the tree as import-linter
+checks it (contracts in pyproject.toml: the product (drivers, gateway) never imports the
+simulator or the harness, the drivers never the gateway, the simulator never the gateway; a
+deployment beside a real robot runs the product alone), and ruff's lint (pyproject.toml)."""
 from __future__ import annotations
 
 import shutil
@@ -11,9 +12,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def tool(name: str, *args: str) -> subprocess.CompletedProcess:
+    """A console script of this environment's (the test extras install it)."""
+    exe = shutil.which(name, path=str(Path(sys.executable).parent)) or name
+    return subprocess.run([exe, *args], cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+
 def lint_imports(*args: str) -> subprocess.CompletedProcess:
-    exe = shutil.which("lint-imports", path=str(Path(sys.executable).parent)) or "lint-imports"
-    return subprocess.run([exe, "--no-cache", *args], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    return tool("lint-imports", "--no-cache", *args)
 
 
 def test_the_layering_contracts_are_kept():
@@ -30,3 +36,16 @@ def test_a_broken_contract_is_caught(tmp_path):
                    'type = "forbidden"\nsource_modules = ["harness"]\nforbidden_modules = ["gateway"]\n')
     out = lint_imports("--config", str(cfg))
     assert out.returncode == 1 and "harness alone BROKEN" in out.stdout, out.stdout[-2000:]
+
+
+def test_ruff_finds_nothing():
+    out = tool("ruff", "check", "--no-cache", ".")
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-1000:]
+
+
+def test_ruff_would_catch_an_unused_import(tmp_path):
+    """The check can fail: the same configuration on a file with an unused import."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("import os\n")
+    out = tool("ruff", "check", "--no-cache", "--config", str(ROOT / "pyproject.toml"), str(bad))
+    assert out.returncode == 1 and "F401" in out.stdout, out.stdout

@@ -35,9 +35,11 @@ def test_shipped_urdfs_are_the_generators_output():
 
 
 @pytest.mark.parametrize("edit, match", [
-    (lambda t: t.replace('<link name="imu"/>', '<link name="imu_x"/>').replace('<child link="imu"/>', '<child link="imu_x"/>'), "no 'imu' link"),
+    (lambda t: t.replace('<link name="imu"/>', '<link name="imu_x"/>')
+     .replace('<child link="imu"/>', '<child link="imu_x"/>'), "no 'imu' link"),
     (lambda t: t.replace("arm0_ee", "arm0_tool"), "arm0_ee"),
-    (lambda t: t.replace('<origin xyz="0 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>', '<origin xyz="0.1 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>'), "centre of mass"),
+    (lambda t: t.replace('<origin xyz="0 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>',
+                         '<origin xyz="0.1 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>'), "centre of mass"),
     (lambda t: "<robot", "cannot parse"),
 ])
 def test_convention_violations_are_named(edit, match):

@@ -278,7 +278,8 @@ def _finding(sessions, k, key, lead: Track, group: list[Track], state: str, sinc
     what = {"actuator": f"joint {target}: Coulomb friction changed",
             "thruster": f"thruster axis {target}: efficiency dropped",
             "sensor": (f"F/T sensor of {target}: bias (joint residual offsets moved, friction did not)"
-                       if target != "imu" else "IMU vs F/T sensors: momentum inconsistency while no thruster fired")}[kind]
+                       if target != "imu"
+                       else "IMU vs F/T sensors: momentum inconsistency while no thruster fired")}[kind]
     if kind == "actuator" and group:
         tr = group[0]
         what += f" to {tr.values[k]:.1f} N m (baseline {tr.mu:.1f} N m)"

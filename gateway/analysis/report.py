@@ -50,7 +50,8 @@ def summary_text(result: SeriesResult, skipped: list[str] = ()) -> str:
     else:
         out.append(f"alerts ({len(result.findings)}):")
         for f in result.findings:
-            out.append(f"  {f.session:<22} {f.state:<7} {f.severity:<8} {f.kind:<8} {f.target:<8} [{f.rule}] {f.message}")
+            out.append(f"  {f.session:<22} {f.state:<7} {f.severity:<8} {f.kind:<8} {f.target:<8} "
+                       f"[{f.rule}] {f.message}")
     return "\n".join(out)
 
 

@@ -19,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL",
                         help="write bus BUS as channel CHANNEL (repeatable; only the buses named are "
                              "written; ASC/BLF/TRC channels are numbers from 1; a CSV holds one bus: BUS=-)")
-    parser.add_argument("--start", type=float, default=None, metavar="S", help="begin S seconds after the session's start")
+    parser.add_argument("--start", type=float, default=None, metavar="S",
+                        help="begin S seconds after the session's start")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="write S seconds of the session")
     parser.add_argument("--can-id", action="append", default=[], metavar="ID[,ID...]",
                         help="only these CAN ids (decimal or 0x hex; repeatable)")

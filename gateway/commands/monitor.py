@@ -1,9 +1,10 @@
 """``bsc monitor``: live monitoring of one robot or many over zenoh, with a terminal dashboard.
 
-Subscribes to ``bsc/<robot>/efforts/**``, ``sensors/commands/**`` (commands observed on the buses) and ``health/**`` (``--robot '*'``
-for every robot), tracks residuals, friction, efficiency, staleness, loss and bus load, applies
-the alert rules (``--rules FILE``, default the shipped one) and publishes alert transitions on
-``bsc/<robot>/alerts`` (also logged; ``--alert-log FILE`` appends JSON lines).
+Subscribes to ``bsc/<robot>/efforts/**``, ``sensors/commands/**`` (commands observed on the
+buses) and ``health/**`` (``--robot '*'`` for every robot), tracks residuals, friction,
+efficiency, staleness, loss and bus load, applies the alert rules (``--rules FILE``, default
+the shipped one) and publishes alert transitions on ``bsc/<robot>/alerts`` (also logged;
+``--alert-log FILE`` appends JSON lines).
 
     bsc monitor --connect tcp/127.0.0.1:7447                      # dashboard until Ctrl-C
     bsc monitor --connect tcp/127.0.0.1:7447 --duration 30 --once # run 30 s, print one final frame

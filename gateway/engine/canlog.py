@@ -230,7 +230,6 @@ def read_log(path: str | os.PathLike[str], stats: ImportStats | None = None,
     making sense part way (truncated, garbage) ends the iteration: ``stats.ended_early`` says
     why; nothing read before is lost. A file that yields nothing at all raises
     :class:`CanLogError`. ``progress(bytes read of the file)`` is called now and then."""
-    import can
 
     path = Path(path)
     fmt = log_format(path)

@@ -343,7 +343,7 @@ def _apply_pending(si, cfg, lim, pend, jcmd, jcmd_i, thr_cmd, tf):
 
 @_jit
 def _compute(si, cfg, et, ei, eft, ej, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
-    period, half, p, nj = cfg[0], cfg[1], cfg[2], cfg[3]
+    _period, half, p, nj = cfg[0], cfg[1], cfg[2], cfg[3]
     t = et[0]
     if t > si[_LAST_CLOSED]:
         si[_LAST_CLOSED] = t
@@ -712,7 +712,8 @@ class EstimatorCore:
             t = int(r["t_ns"])
             fl = r["flags"]
             full, simp, rate = r["full_nm"].tolist(), r["simplified_nm"].tolist(), r["rate_rad_s"].tolist()
-            cmd, cmd_have, cmd_t = r["commanded_nm"].tolist(), r["commanded_have"].tolist(), r["commanded_t_ns"].tolist()
+            cmd, cmd_have = r["commanded_nm"].tolist(), r["commanded_have"].tolist()
+            cmd_t = r["commanded_t_ns"].tolist()
             for arm, names, lo, hi, bits, a in spans:
                 flags = self._flags(fl, bits, a)
                 have = all(cmd_have[lo:hi])

@@ -140,7 +140,8 @@ def render(snapshot: dict, alerts: list[Alert], *, color: bool = False, stats: d
     if alerts:
         add([("", ""), ("", f"recent alerts (last {min(len(alerts), ALERTS_SHOWN)} of {len(alerts)}):")])
         for a in alerts[-ALERTS_SHOWN:]:
-            style = "hot" if a.state == "raised" and a.severity == "critical" else "warn" if a.state == "raised" else "dim"
+            raised = a.state == "raised"
+            style = "hot" if raised and a.severity == "critical" else "warn" if raised else "dim"
             add([(style, "  " + line) for line in _alert_lines(a)])
     text = []
     for style, line in out:

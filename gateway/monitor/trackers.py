@@ -90,7 +90,8 @@ class JointTracker:
         self.samples = 0
 
     def add(self, t_ns: int, commanded_nm: float, estimated_nm: float, rate_rad_s: float) -> None:
-        w = MAX_SAMPLE_WEIGHT_S if self.last_t_ns is None else min(MAX_SAMPLE_WEIGHT_S, max(0.0, (t_ns - self.last_t_ns) / 1e9))
+        w = (MAX_SAMPLE_WEIGHT_S if self.last_t_ns is None
+             else min(MAX_SAMPLE_WEIGHT_S, max(0.0, (t_ns - self.last_t_ns) / 1e9)))
         if self.last_t_ns is not None and t_ns <= self.last_t_ns:
             return                           # out of order or duplicate: the fit wants time order
         self.last_t_ns = t_ns

@@ -40,7 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="capture", metavar="NAME|FILE", help="scenario (default: capture)")
     p.add_argument("--robot", metavar="NAME|FILE.urdf", help="override the scenario's robot")
     p.add_argument("--duration", type=float, metavar="S", help="override the scenario duration, s")
-    p.add_argument("--out", type=Path, default=Path("bsc-demo"), metavar="DIR", help="output folder (default ./bsc-demo)")
+    p.add_argument("--out", type=Path, default=Path("bsc-demo"), metavar="DIR",
+                   help="output folder (default ./bsc-demo)")
     p.add_argument("--no-sweep", action="store_true", help="skip the noise sweep and the wrong-model run")
     p.add_argument("--no-record", action="store_true", help="do not write session.mcap")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

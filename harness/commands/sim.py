@@ -110,7 +110,8 @@ def _uses_can(args: argparse.Namespace) -> bool:
     return bool(args.channel or args.fd or args.realtime or args.silent or args.counter_jump or args.bus_kwarg
                 or args.bitrate is not None or args.data_bitrate is not None
                 or args.fault_seed is not None
-                or any(getattr(args, f"{n}_rate") is not None for n in ("drop", "duplicate", "reorder", "corrupt", "bad_dlc")))
+                or any(getattr(args, f"{n}_rate") is not None
+                       for n in ("drop", "duplicate", "reorder", "corrupt", "bad_dlc")))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -210,7 +211,8 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
                    "frames_sent": dict(fw.frames_sent), "faults_injected": totals,
                    "pacing": fw.pacing.as_dict() if fw.pacing is not None else None,
                    "faults_per_device": {d: {k: v for k, v in fw.counts[d].items() if v and k != "samples"}
-                                         for d in fw.devices if any(v for k, v in fw.counts[d].items() if k != "samples")}}
+                                         for d in fw.devices
+                                         if any(v for k, v in fw.counts[d].items() if k != "samples")}}
 
 
 def _run_series(args: argparse.Namespace) -> int:

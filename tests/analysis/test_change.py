@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gateway.analysis import collect_sessions
-from gateway.analysis.change import DEFAULT_DETECTORS, Detector, analyze_series, cusum_track
+from gateway.analysis.change import Detector, analyze_series, cusum_track
 from gateway.analysis.session import AxisFit, JointFit, SessionFeatures
 
 from .synth import write_session
@@ -25,8 +25,8 @@ def features(k, rng, *, coulomb=None, offset=None, eff=None, quiet=None):
     s = SessionFeatures(f"/x/session_{k:04d}.mcap", "bot", k, k, k + 1,
                         arms={"arm0": ["arm0/j1", "arm0/j2"], "arm1": ["arm1/j1", "arm1/j2"]})
     for j in JOINTS:
-        s.joints[j] = JointFit(j, coulomb.get(j, 90.0) + rng.normal(0, 0.5), 8.0, offset.get(j, 0.0) + rng.normal(0, 0.5),
-                               8.0, 1000, 500, 500, True)
+        s.joints[j] = JointFit(j, coulomb.get(j, 90.0) + rng.normal(0, 0.5), 8.0,
+                               offset.get(j, 0.0) + rng.normal(0, 0.5), 8.0, 1000, 500, 500, True)
     for a in ("fx", "fy", "fz", "mx", "my", "mz"):
         weak = a in ("fz", "mx", "my")
         s.axes[a] = AxisFit(a, float("nan") if weak else eff.get(a, 0.9) + rng.normal(0, 0.01), 0.0, 50.0, 5.0, 1000,
@@ -171,6 +171,7 @@ def test_truncated_and_foreign_logs_in_a_series(tmp_path):
     result, skipped = run([tmp_path], workers=1)
     assert [s.name for s in result.sessions] == [s.name for s in whole] == ["z04", "z03", "z02", "z01"]
     got = {s.name: s for s in result.sessions}
-    assert len(got["z03"].notes) == 1 and "is truncated" in got["z03"].notes[0] and "analysing the" in got["z03"].notes[0]
+    note = got["z03"].notes
+    assert len(note) == 1 and "is truncated" in note[0] and "analysing the" in note[0]
     assert 0 < got["z03"].counts["joint_efforts"] < {s.name: s for s in whole}["z03"].counts["joint_efforts"]
     assert skipped == [f"{tmp_path / 'notes.mcap'}: not an MCAP file (bad magic bytes b'hello')"]

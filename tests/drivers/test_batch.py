@@ -66,7 +66,8 @@ def test_batch_matches_cantools():
 
 def test_batch_from_messages_counts_bad_frames():
     msgs = frames.to_messages(frames.wrench_payloads(
-        __import__("drivers.samples", fromlist=["WrenchSample"]).WrenchSample("a", 0, 1, (1.0, 2.0, 3.0), (4.0, 5.0, 6.0))))
+        __import__("drivers.samples", fromlist=["WrenchSample"]).WrenchSample("a", 0, 1, (1.0, 2.0, 3.0),
+                                                                            (4.0, 5.0, 6.0))))
     import can
     msgs.append(can.Message(arbitration_id=0x200, is_error_frame=True, is_extended_id=False))
     msgs.append(can.Message(arbitration_id=0x200, data=bytes(64), is_fd=True, is_extended_id=False))

@@ -64,7 +64,8 @@ MALFORMED = [
     ("short F/T", msg(0x200, GOOD_A[:7]), "dlc"),
     ("long F/T B", msg(0x201, GOOD_A), "dlc"),
     ("empty joint", msg(0x300, b""), "dlc"),
-    ("dlc disagrees with data", can.Message(arbitration_id=0x300, data=H("00 00 00000000 0000"), dlc=5, is_extended_id=False, check=False), "dlc"),
+    ("dlc disagrees with data", can.Message(arbitration_id=0x300, data=H("00 00 00000000 0000"), dlc=5,
+                                            is_extended_id=False, check=False), "dlc"),
     ("remote F/T", msg(0x200, b"", is_remote_frame=True, dlc=8), "remote_frame"),
     ("FD joint on classic", msg(0x300, H("00 00 00000000 0000"), is_fd=True), "fd_on_classic"),
     ("FD 64-byte torque", msg(0x100, bytes(64), is_fd=True), "fd_on_classic"),
@@ -157,7 +158,8 @@ def test_thruster_and_torque_commands_decode():
     rig.feed(*frames.encode_thruster(ThrusterCommand(0, 4, (1.0, 2.0, 3.0), (0.5, 0.0, 0.0), valves=0x81)))
     assert rig.samples == [ThrusterCommand(1_000_000_000 * 0, 4, (1.0, 2.0, 3.0), (0.5, 0.0, 0.0), 0x81)]
     rig = Rig(ARM)
-    rig.feed(*frames.encode_torque_commands([TorqueCommand("arm0/j1", 0, 2, 10.0), TorqueCommand("arm0/j2", 0, 2, -1e6)]))
+    rig.feed(*frames.encode_torque_commands([TorqueCommand("arm0/j1", 0, 2, 10.0),
+                                             TorqueCommand("arm0/j2", 0, 2, -1e6)]))
     assert [(s.device, s.torque_nm, s.saturated) for s in rig.samples] == [
         ("arm0/j1", 10.0, False), ("arm0/j2", -32767 * 0.05, True)]
 

@@ -136,7 +136,8 @@ unit = st.floats(-1, 1)
 
 
 @settings(max_examples=200, deadline=None)
-@given(ctr, st.tuples(unit, unit, unit, unit), st.tuples(*[st.floats(-1.9, 1.9)] * 3), st.tuples(*[st.floats(-3.9, 3.9)] * 3))
+@given(ctr, st.tuples(unit, unit, unit, unit), st.tuples(*[st.floats(-1.9, 1.9)] * 3),
+       st.tuples(*[st.floats(-3.9, 3.9)] * 3))
 def test_imu_round_trip(c, q, w, a):
     s = ImuSample(123_000, c, q, w, a)
     d = frames.decode_imu(dict(frames.imu_payloads(s)), 1)

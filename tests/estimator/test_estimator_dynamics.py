@@ -75,8 +75,8 @@ def test_A_tau_rows_are_unit_joint_twists(angles):
     np.testing.assert_allclose(np.linalg.norm(A[:, 3:], axis=1), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.einsum("ik,ik->i", A[:, :3], A[:, 3:]), 0.0, atol=1e-12)
     for arm in em.arms:                                   # first joint: fixed to the sensor, q-independent
-        np.testing.assert_allclose(A[arm.columns[0]], joint_torque_matrix(em, em.data(), np.zeros(em.n_joints))[arm.columns[0]],
-                                   atol=1e-12)
+        at_zero = joint_torque_matrix(em, em.data(), np.zeros(em.n_joints))
+        np.testing.assert_allclose(A[arm.columns[0]], at_zero[arm.columns[0]], atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

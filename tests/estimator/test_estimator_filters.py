@@ -60,7 +60,9 @@ def test_rotational_kf_beats_raw_difference_by_a_large_factor(scenario):
     k0 = int(FS)
     raw_dw = np.diff(sc.gyro, axis=0) * FS
     raw_tau = raw_dw @ sc.inertia.T + np.cross(sc.gyro[1:], sc.gyro[1:] @ sc.inertia.T) - sc.tau_arms[1:]
-    rms = lambda e: float(np.sqrt(np.mean(e[k0:] ** 2)))
+    def rms(e):
+        return float(np.sqrt(np.mean(e[k0:] ** 2)))
+
     err_raw = rms(raw_tau - sc.tau_thr[1:])
     err_kf = rms(tau - sc.tau_thr)
     assert err_raw > 2000.0                      # ~ I sigma sqrt(2) fs: thousands of N m

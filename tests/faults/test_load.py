@@ -263,7 +263,8 @@ def test_ten_times_the_nominal_rate_every_frame_counted_memory_bounded(block):
               "overflow_episodes": stats["overflow_episodes"], "peak_backlog": stats["peak_backlog"],
               "efforts": counter.efforts, "good_efforts": counter.good, "zenoh_messages": counter.n,
               "rss_start_mb": round(rss0, 1), "rss_warm_mb": round(warm or 0, 1),
-              "rss_max_mb": round(max(mb for _, mb, _ in sampler.samples), 1), "rss_growth_after_warm_mb": round(growth, 1),
+              "rss_max_mb": round(max(mb for _, mb, _ in sampler.samples), 1),
+              "rss_growth_after_warm_mb": round(growth, 1),
               "wall_flood_s": round(t_flood, 1), "wall_drained_s": round(t_drained, 1)}
     # without the bound, every dropped frame would have waited in memory instead
     per_frame = bytes_per_queued_frame(per_bus[next(iter(per_bus))])

@@ -122,7 +122,8 @@ def test_python_can_configuration_is_honoured_unless_a_flag_overrides_it(plugin,
                       env={"CAN_BITRATE": "800000"})
     assert all((c["bitrate"], c["serial"]) == (1_000_000, 5) for c in calls)
     # a bit timing configured instead of a bit rate: no bit rate added
-    (tmp_path / ".canrc").write_text("[default]\nf_clock = 80000000\nbrp = 10\ntseg1 = 5\ntseg2 = 2\nsjw = 1\nnof_samples = 1\n")
+    (tmp_path / ".canrc").write_text("[default]\nf_clock = 80000000\nbrp = 10\ntseg1 = 5\ntseg2 = 2\nsjw = 1\n"
+                                     "nof_samples = 1\n")
     proc, calls = bsc(plugin, tmp_path, *replay_args(session))
     assert proc.returncode == 0, proc.stderr
     assert all("bitrate" not in c and "BitTiming" in c["timing"] for c in calls)

@@ -110,7 +110,8 @@ def test_service_requires_every_bus_and_closes_twice(sessions):
     with pytest.raises(GatewayError):
         GatewayService(wm, {}, sessions[0])
     prefix = f"bsc-close-{uuid.uuid4().hex}"
-    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), ignore_config=True) for n in wm.buses}
+    buses = {n: can.Bus(interface="virtual", channel=wire.channel_name(prefix, n), ignore_config=True)
+             for n in wm.buses}
     try:
         gw = GatewayService(wm, buses, sessions[0]).start()
         gw.close()

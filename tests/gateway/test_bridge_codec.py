@@ -17,12 +17,13 @@ reasons = st.lists(st.tuples(name, st.integers(0, 10**9)), max_size=4).map(tuple
 
 SAMPLES = st.one_of(
     st.builds(WrenchSample, name, i64, st.integers(0, 255), v3, v3, st.booleans(), st.integers(0, 255)),
-    st.builds(ImuSample, i64, st.integers(0, 255), st.tuples(fl, fl, fl, fl), v3, v3, st.booleans(), st.integers(0, 2**32 - 1)),
+    st.builds(ImuSample, i64, st.integers(0, 255), st.tuples(fl, fl, fl, fl), v3, v3, st.booleans(),
+              st.integers(0, 2**32 - 1)),
     st.builds(JointSample, name, i64, st.integers(0, 255), fl, fl, st.booleans(), st.integers(0, 255)),
     st.builds(TorqueCommand, name, i64, st.integers(0, 255), fl, st.booleans()),
     st.builds(ThrusterCommand, i64, st.integers(0, 255), v3, v3, st.integers(0, 2**32 - 1), st.booleans()),
-    st.builds(DeviceHealth, name, name, i64, st.integers(0), st.integers(0), st.integers(0), reasons, i64, st.booleans(),
-              st.integers(0), st.integers(0)),
+    st.builds(DeviceHealth, name, name, i64, st.integers(0), st.integers(0), st.integers(0), reasons, i64,
+              st.booleans(), st.integers(0), st.integers(0)),
     st.builds(BusHealth, name, i64, st.integers(0), reasons, fl, reasons),
     st.builds(JointEfforts, name, i64, st.lists(name, max_size=3).map(tuple), st.lists(fl, max_size=3).map(tuple),
               st.lists(fl, max_size=3).map(tuple), st.lists(fl, max_size=3).map(tuple), i64,
@@ -46,7 +47,8 @@ def test_round_trip(sample):
     b'{"type": "JointSample", "v": 1, "device": "a", "t_ns": 1, "counter": 1, "angle_rad": 0}',
     b'{"type": "JointSample", "v": 1, "device": "a", "t_ns": 1.5, "counter": 1, "angle_rad": 0, "rate_rad_s": 0}',
     b'{"type": "TorqueCommand", "v": 1, "device": "a", "t_ns": 1, "counter": 1, "torque_nm": 0, "evil": 1}',
-    b'{"type": "WrenchSample", "v": 1, "device": "a", "t_ns": 1, "counter": 1, "force_n": [1, 2], "torque_nm": [0,0,0]}',
+    b'{"type": "WrenchSample", "v": 1, "device": "a", "t_ns": 1, "counter": 1, "force_n": [1, 2], '
+    b'"torque_nm": [0,0,0]}',
 ])
 def test_bad_payloads_refused(payload):
     with pytest.raises(codec.CodecError):

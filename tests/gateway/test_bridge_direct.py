@@ -347,3 +347,4 @@ def test_payloads_declare_their_encoding_and_their_schemas_are_queryable(session
     bad = dict(got[0][1], t_ns="soon")
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.Draft202012Validator(schemas[bad["type"]]).validate(bad)
+

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from drivers.samples import ImuSample, JointSample, WrenchSample
 from gateway import mcaplog
-from gateway.recorder import (CAN_SCHEMA_NAME, RECORDING_METADATA, Recorder, RecorderError,
+from gateway.recorder import (CAN_SCHEMA_NAME, Recorder, RecorderError,
                               can_frame_from_record, can_frame_to_record, json_schema_for)
 
 WRENCH = WrenchSample("arm0", 1_000_000_000, 7, (1.0, -2.5, 3.0), (0.1, 0.2, -0.3), False, 4)

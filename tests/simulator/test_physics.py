@@ -141,7 +141,7 @@ def test_ft_truth_is_rate_of_change_of_arm_momentum(capture_run):
 def test_ft_projection_on_joint1_is_joint1_actual_torque(capture_run):
     sim, tr = capture_run
     robot = sim.robot
-    model, data = robot.model, robot.model.createData()
+    model = robot.model
     for i, arm in enumerate(robot.arms):
         j1 = arm.joints[0]
         col = arm.iv[0] - 6

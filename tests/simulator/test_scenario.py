@@ -1,7 +1,6 @@
 """Scenario files: defaults, validation, degradations."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from simulator import scenario

@@ -27,7 +27,8 @@ from drivers.samples import ImuSample, JointSample, WrenchSample
 HERE = Path(__file__).parent
 CHANNELS = {"arm0": "vcan0", "arm1": "vcan1", "spacecraft": "vcan2"}
 HAVE_VCANS = all(Path(f"/sys/class/net/{ch}").exists() for ch in CHANNELS.values())
-needs_vcan = pytest.mark.skipif(not HAVE_VCANS, reason="needs SocketCAN vcan0..vcan2: run .ci/vcan-tier.sh (a VM with vcan)")
+needs_vcan = pytest.mark.skipif(not HAVE_VCANS,
+                                reason="needs SocketCAN vcan0..vcan2: run .ci/vcan-tier.sh (a VM with vcan)")
 N = 300            # samples per device in the main check: a few hundred, seconds in the VM
 WAIT_S = 120.0     # a hang becomes a failure after this (Python is ~14x slower in the VM)
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
