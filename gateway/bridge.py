@@ -762,6 +762,12 @@ class GatewayService:
                 if w is not None:
                     got += receive(*w, ev)
             if backlog:
+                # the poll is a moment old: a bus with nothing queued may have received since, and
+                # its frames can be earlier than what was just read from another bus, so read it
+                # now (non-blocking) before merging
+                for name, fd in list(fd_of.items()):
+                    if not backlog.waiting(name) and fd in watched:
+                        receive(*watched[fd], 0)
                 rows = backlog.take(DIRECT_BATCH)             # stops where a bus must be read first
                 if len(rows):
                     with lock:

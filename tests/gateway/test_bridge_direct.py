@@ -348,3 +348,59 @@ def test_payloads_declare_their_encoding_and_their_schemas_are_queryable(session
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.Draft202012Validator(schemas[bad["type"]]).validate(bad)
 
+
+def test_direct_mode_reads_a_bus_that_received_after_the_poll_before_merging(sessions):  # noqa: F811
+    """The race behind an out-of-order feed: the worker polls, reads the bus that was ready, and
+    meanwhile an earlier frame reaches another bus (here: reading the spacecraft bus makes it
+    arrive on arm0). Merging right away fed the later frame first; the worker now reads every bus
+    with nothing queued before it merges, so the earlier frame goes in first."""
+    import socket
+
+    from dgram_bus import DgramBus
+
+    robot = robot_description_load()
+    names = list(wire.WireMap.from_robot(robot).buses)
+    rx, tx = {}, {}
+    for n in names:
+        rx[n], tx[n] = dgram_pair(n)
+
+    class ArrivesWhileRead(DgramBus):
+        fired = False
+
+        def _recv_internal(self, timeout):
+            msg, filtered = super()._recv_internal(timeout)
+            if msg is not None and not ArrivesWhileRead.fired:
+                ArrivesWhileRead.fired = True
+                tx["arm0"].send(can.Message(timestamp=0.0005, arbitration_id=0x7A0, data=bytes(8)))  # earlier
+            return msg, filtered
+
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx["spacecraft"].shutdown()
+    tx["spacecraft"].shutdown()
+    rx["spacecraft"], tx["spacecraft"] = ArrivesWhileRead(a, "spacecraft-rx"), DgramBus(b, "spacecraft-tx")
+    pub_s, _ = sessions
+    gw = GatewayService(robot, rx, pub_s)
+    feed, fed = gw.engine.feed_frames, []
+
+    def recording_feed(rows, log_ns=None):
+        fed.extend(rows["t_ns"].tolist())
+        feed(rows, log_ns)
+
+    gw.engine.feed_frames = recording_feed
+    try:
+        with gw:
+            assert gw.receive == "direct"
+            tx["arm1"].send(can.Message(timestamp=0.0, arbitration_id=0x7A2, data=bytes(8)))
+            wait_for(lambda: len(fed) == 1, "the first frame fed: the worker is in its polling loop")
+            tx["spacecraft"].send(can.Message(timestamp=0.001, arbitration_id=0x7A1, data=bytes(8)))
+            wait_for(lambda: len(fed) == 3, f"every frame fed (fed: {fed})")
+        assert ArrivesWhileRead.fired and fed == [0, 500_000, 1_000_000]
+    finally:
+        for bus in (*rx.values(), *tx.values()):
+            bus.shutdown()
+
+
+def robot_description_load():
+    import robot_description
+
+    return robot_description.load("paper_robot")
