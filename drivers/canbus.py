@@ -28,6 +28,13 @@ import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from drivers.errors import DriverError
+
+
+class BusOptionsError(DriverError, ValueError):
+    """Bus options that do not go together (a data bit rate without CAN FD, options without a bus)."""
+
+
 _RATE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*([kKmM]?)\s*(?:bit/s|bps|b/s)?\s*$")
 # keys that mean the bit timing is given some other way than a bit rate
 _TIMING_KEYS = ("timing", "f_clock", "f_clock_mhz", "brp", "nom_brp", "btr0", "btr1")
@@ -127,7 +134,7 @@ class BusOptions:
 
     def check(self, fd: bool) -> None:
         if self.data_bitrate is not None and not fd:
-            raise ValueError("--data-bitrate is the CAN FD data phase: give --fd too")
+            raise BusOptionsError("--data-bitrate is the CAN FD data phase: give --fd too")
 
 
 def check_interface(args: argparse.Namespace) -> None:
@@ -135,7 +142,7 @@ def check_interface(args: argparse.Namespace) -> None:
     if not getattr(args, "interface", None) and (getattr(args, "bitrate", None) is not None
                                                  or getattr(args, "data_bitrate", None) is not None
                                                  or getattr(args, "bus_kwarg", None)):
-        raise ValueError("--bitrate, --data-bitrate and --bus-kwarg are for the CAN buses: give --interface")
+        raise BusOptionsError("--bitrate, --data-bitrate and --bus-kwarg are for the CAN buses: give --interface")
 
 
 def open_bus(interface: str, channel: str, options: BusOptions | None = None, *, fd: bool = False,

@@ -37,12 +37,11 @@ from typing import Mapping, Sequence
 
 import can
 
+from drivers.errors import DriverError  # noqa: F401 - re-exported: drivers.frames.DriverError
 from drivers import wire
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 
 
-class DriverError(Exception):
-    """Root of the drivers' exceptions."""
 
 
 class DecodeError(DriverError, ValueError):

@@ -30,6 +30,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass
 
+from drivers.errors import DriverError
 from drivers.samples import BusHealth, DeviceHealth
 
 REASONS = ("error_frame", "extended_id", "unknown_id", "dlc", "remote_frame", "fd_on_classic",
@@ -38,6 +39,10 @@ DEFAULT_STALE_PERIODS = 10
 RESYNC_PERIODS = 100   # a device silent for longer has resumed: trust the time, not the counter alone
 DEVICE_CLOCK_WRAP_NS = (1 << 32) * 1000     # a device's u32 microsecond sample time wraps after 71.6 min
 MAX_RATE = 1e6         # device seconds per second: beyond, no source (a million times real time)
+
+
+class SourceTimingError(DriverError, ValueError):
+    """A source timing that cannot be: a rate or a stale count out of range."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,10 +63,10 @@ class SourceTiming:
 
     def __post_init__(self) -> None:
         if self.rate is not None and not (math.isfinite(self.rate) and 0 < self.rate <= MAX_RATE):
-            raise ValueError(f"source rate {self.rate!r}: must be a positive number of device seconds per "
+            raise SourceTimingError(f"source rate {self.rate!r}: must be a positive number of device seconds per "
                              f"second, at most {MAX_RATE:g}")
         if self.stale_periods < 1:
-            raise ValueError(f"stale periods {self.stale_periods!r}: must be at least 1")
+            raise SourceTimingError(f"stale periods {self.stale_periods!r}: must be at least 1")
 
 
 DEFAULT_TIMING = SourceTiming()

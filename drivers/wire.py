@@ -21,6 +21,8 @@ which ids. Bus load arithmetic (classic and FD, worst-case bit stuffing) lives h
 """
 from __future__ import annotations
 
+from drivers.errors import DriverError
+
 import functools
 import math
 import struct
@@ -81,7 +83,7 @@ def udp_port(bus_index: int) -> int:
     return UDP_BASE_PORT + bus_index
 
 
-class WireError(ValueError):
+class WireError(DriverError, ValueError):
     """The wire contract cannot describe this robot, or a DBC disagrees with the code."""
 
 

@@ -52,6 +52,8 @@ a replay are identical to the live ones.
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError  # noqa: F401 - the service's errors' root
+
 import contextlib
 import dataclasses
 import logging
@@ -213,8 +215,6 @@ class _RowBacklog:
         return flat[order[:k]]
 
 
-class GatewayError(Exception):
-    """Root of the gateway service's errors."""
 
 
 class BusState:

@@ -4,6 +4,8 @@ Errors are one clear line on stderr and a non-zero exit; ``--debug`` shows the t
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import argparse
 import importlib
 import os
@@ -38,8 +40,19 @@ EXIT_TARGETS_MISSED = 3     # the run completed, and its judged results missed t
 EXIT_INTERRUPTED = 130      # Ctrl-C, as a shell reports SIGINT
 
 
-class UserError(Exception):
+class UserError(GatewayError):
     """An error the user can fix (bad file, bad option): printed as one line, exit status 2."""
+
+
+PROJECT_PACKAGES = ("gateway", "drivers", "simulator", "robot_description", "harness")
+
+
+def is_project_error(exc: BaseException) -> bool:
+    """An error the project raised on purpose: of a class defined in one of its packages (each
+    package's errors derive from its own root: DriverError, GatewayError, SimulatorError,
+    DescriptionError). The CLI tells the user about these in one line; any other exception (a
+    numpy shape error, a KeyError) is a bug and shows as one."""
+    return any(c.__module__.split(".")[0] in PROJECT_PACKAGES for c in type(exc).__mro__)
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
@@ -83,9 +96,13 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
         if args.debug:
             raise
-        kind = "" if isinstance(exc, (UserError, OSError, ValueError)) else f"{type(exc).__name__}: "
-        print(f"bsc {args.command}: error: {kind}{exc}", file=sys.stderr)
-        return EXIT_USAGE if isinstance(exc, (UserError, ValueError, OSError)) else EXIT_FAILURE
+        if is_project_error(exc) or isinstance(exc, OSError):
+            print(f"bsc {args.command}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        # anything else is a bug, not a bad input: say so
+        print(f"bsc {args.command}: internal error: {type(exc).__name__}: {exc} (a bug in bsc: "
+              f"--debug shows where)", file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

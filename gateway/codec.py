@@ -16,6 +16,8 @@ not held for batching: a few messages per step; in the latency benchmark the hop
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import dataclasses
 import json
 import time
@@ -64,7 +66,7 @@ def put(publisher, payload: bytes) -> None:
     publisher.put(payload, attachment=str(time.time_ns()).encode())
 
 
-class CodecError(ValueError):
+class CodecError(GatewayError, ValueError):
     """A payload that is not a valid encoded sample."""
 
 

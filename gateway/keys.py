@@ -26,6 +26,8 @@ controller: in a deployment only a configured controller may publish there
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
@@ -34,7 +36,7 @@ ROOT = "bsc"
 _FORBIDDEN = set("*$?#/ ")
 
 
-class KeyExprError(ValueError):
+class KeyExprError(GatewayError, ValueError):
     """A name that cannot be a key expression chunk."""
 
 

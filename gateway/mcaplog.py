@@ -16,6 +16,8 @@ one readable line that names the file.
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import dataclasses
 import io
 import json
@@ -48,7 +50,7 @@ _PARSE_ERRORS = (McapError, struct.error, ValueError, KeyError, IndexError, Over
                  MemoryError, _ZstdError)
 
 
-class McapFileError(ValueError):
+class McapFileError(GatewayError, ValueError):
     """The file is not a readable MCAP log (empty, foreign, corrupt before any data)."""
 
 
@@ -515,7 +517,7 @@ def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | Non
     output = Path(output) if output is not None else source.with_name(
         source.stem + ".recovered" + (source.suffix or ".mcap"))
     if output.exists() and output.resolve() == source.resolve():
-        raise ValueError(f"{output}: output would overwrite the file being recovered")
+        raise McapFileError(f"{output}: output would overwrite the file being recovered")
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output} exists (use --force to replace it)")
     header = scan_header(source)

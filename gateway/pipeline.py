@@ -17,6 +17,8 @@ that produced the object (its log time in a recording). Nothing here does I/O or
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 from typing import Callable
 
 import can
@@ -39,7 +41,7 @@ _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "devi
              ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None}
 
 
-class PipelineError(ValueError):
+class PipelineError(GatewayError, ValueError):
     """The pipeline cannot be built as asked (a model that is not the robot's, ...)."""
 
 

@@ -28,6 +28,8 @@ are never dropped.
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import base64
 import collections
 import dataclasses
@@ -90,7 +92,7 @@ CAN_FRAME_SCHEMA: dict[str, Any] = {
 }
 
 
-class RecorderError(OSError):
+class RecorderError(GatewayError, OSError):
     """Recording failed (cannot write the file, disk full): data written before stays valid."""
 
 

@@ -24,6 +24,8 @@ file (killed recorder) is recovered into a temporary copy first (:func:`readable
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import collections
 import contextlib
 import dataclasses
@@ -57,7 +59,7 @@ REORDER_WINDOW_NS = 1_000_000_000   # live playback: messages are put in log-tim
 LATE_US = 500.0                # live playback: a message sent this much after its due time is late
 
 
-class ReplayError(ValueError):
+class ReplayError(GatewayError, ValueError):
     """A log cannot be replayed as asked (nothing to replay, no robot, no pipeline...)."""
 
 

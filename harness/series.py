@@ -24,6 +24,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+
+class SeriesError(ValueError):
+    """A degradation series that cannot be made as asked (the harness's errors)."""
+
+
 EPOCH_NS = 1_798_761_600_000_000_000       # 2027-01-01T00:00:00Z: session 0 of every series
 SESSION_SPACING_NS = 86_400 * 1_000_000_000  # one session a day
 SERIES_METADATA = "bsc.series"
@@ -55,7 +60,7 @@ def default_onset(n: int) -> int:
     """Onset session of an ``n``-session series: a third in, never before session 3 (the first
     three are the change detector's baseline), never the last."""
     if n < 5:
-        raise ValueError(f"a degradation series needs at least 5 sessions, got {n}")
+        raise SeriesError(f"a degradation series needs at least 5 sessions, got {n}")
     return min(n - 2, max(3, math.ceil(n / 3)))
 
 
@@ -153,14 +158,14 @@ def write_series(name: str, sessions: int, out_dir: str | os.PathLike[str], *,
     so several series of one length can share the healthy series' first sessions.
     """
     if name not in SERIES:
-        raise ValueError(f"no series {name!r} (series: {', '.join(SERIES)})")
+        raise SeriesError(f"no series {name!r} (series: {', '.join(SERIES)})")
     spec = SERIES[name]
     if sessions < 1:
-        raise ValueError("sessions must be at least 1")
+        raise SeriesError("sessions must be at least 1")
     if duration_s <= 0:
-        raise ValueError("duration_s must be positive")
+        raise SeriesError("duration_s must be positive")
     if not 0 <= first < sessions:
-        raise ValueError(f"first must be a session of the series (0 to {sessions - 1}), got {first}")
+        raise SeriesError(f"first must be a session of the series (0 to {sessions - 1}), got {first}")
     onset = spec.onset(sessions)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,8 @@ Arms are found from the links, not from a count: any number of arms with any num
 """
 from __future__ import annotations
 
+from robot_description.errors import DescriptionError  # noqa: F401 - the package's errors' root
+
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -31,8 +33,6 @@ EE_SUFFIX = "_ee"
 IMU_FRAME = "imu"
 
 
-class DescriptionError(ValueError):
-    """The URDF cannot be read, or does not follow the bsc robot convention."""
 
 
 class PhysicalValueError(DescriptionError):

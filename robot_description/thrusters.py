@@ -17,6 +17,8 @@ simulator's flight software needs all six.
 """
 from __future__ import annotations
 
+from robot_description.errors import DescriptionError
+
 import math
 import tomllib
 from dataclasses import dataclass
@@ -51,7 +53,7 @@ ROW_KEYS = ("pos_m", "dir", "max_thrust_n")
 AXES = ("force x", "force y", "force z", "moment x", "moment y", "moment z")
 
 
-class ThrusterLayoutError(ValueError):
+class ThrusterLayoutError(DescriptionError):
     """A layout that is unknown or malformed."""
 
 

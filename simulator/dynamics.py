@@ -23,6 +23,8 @@ at the start of that step.
 """
 from __future__ import annotations
 
+from simulator.errors import SimulatorError
+
 import math
 from dataclasses import dataclass
 
@@ -30,7 +32,7 @@ import numpy as np
 import pinocchio as pin
 
 
-class DivergenceError(ValueError):
+class DivergenceError(SimulatorError, ValueError):
     """The simulated state stopped being finite: ``what`` names the quantities (and whether NaN
     or infinite), ``t_s`` the simulated time of the state, when known."""
 

@@ -29,6 +29,8 @@ drivers' health then reports (:meth:`Firmware.expected_health` computes it).
 """
 from __future__ import annotations
 
+from simulator.errors import SimulatorError
+
 import contextlib
 import ipaddress
 import math
@@ -49,7 +51,7 @@ HEARTBEAT_OPERATIONAL = 0x05
 MAX_JUMP = 126                 # a larger skip would read as "late" (8-bit counters, half range)
 
 
-class FirmwareError(ValueError):
+class FirmwareError(SimulatorError, ValueError):
     """A fault or bus configuration the firmware cannot apply (unknown device, bad rate)."""
 
 

@@ -6,6 +6,8 @@ silently runs the default.
 """
 from __future__ import annotations
 
+from simulator.errors import SimulatorError
+
 import copy
 import tomllib
 from dataclasses import dataclass
@@ -30,7 +32,7 @@ FREE_TABLES = {"friction.per_joint", "thrusters.pwpfm", "faults"}
 ARRAYS_OF_TABLES = {"thrusters.custom"}
 
 
-class ScenarioError(ValueError):
+class ScenarioError(SimulatorError, ValueError):
     """The scenario file cannot be read or has an invalid key or value."""
 
 

@@ -25,6 +25,8 @@ estimated thruster wrench is the momentum balance of F/T sensors and IMU and mus
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import json
 import os
 from dataclasses import asdict, dataclass, field, replace
@@ -47,7 +49,7 @@ QUIET_GUARD_NS = 20_000_000           # "no thruster firing": valves closed 20 m
 MIN_QUIET_SAMPLES = 20
 
 
-class AnalysisError(ValueError):
+class AnalysisError(GatewayError, ValueError):
     """A log that cannot be analysed (not MCAP, truncated, no efforts)."""
 
 

@@ -30,9 +30,11 @@ RT_PRIORITY_HELP = ("run at SCHED_FIFO priority N (1-99; root or CAP_SYS_NICE), 
 
 
 def check_rt_priority(n: int) -> None:
-    """A ``--rt-priority`` value: 0 (off) or 1-99, else a one-line ValueError."""
+    """A ``--rt-priority`` value: 0 (off) or 1-99, else a one-line UserError."""
     if n and not 1 <= n <= 99:
-        raise ValueError(f"--rt-priority must be 1-99, got {n}")
+        from gateway.cli import UserError
+
+        raise UserError(f"--rt-priority must be 1-99, got {n}")
 
 
 def set_rt_priority(n: int) -> None:

@@ -11,6 +11,8 @@ and CUSUM change detection (thresholds in the rules file, docs/monitoring.md).
 """
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 import sys
 from pathlib import Path
@@ -41,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     rules = load_rules(args.rules)
     baseline = args.baseline if args.baseline is not None else rules.baseline_sessions
     if baseline < 1:
-        raise ValueError("--baseline must be at least 1")
+        raise UserError("--baseline must be at least 1")
     import tempfile
 
     from gateway.commands.import_log import analyze_logs

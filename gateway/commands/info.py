@@ -1,6 +1,8 @@
 """``bsc info FILE``: what an MCAP log holds, and whether it is complete or needs recovering."""
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 
 
@@ -25,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
         print(info_lines(args.file, as_json=args.json))
         return 0
     if not args.gap_s > 0:
-        raise ValueError(f"--gap-s {args.gap_s}: must be positive")
+        raise UserError(f"--gap-s {args.gap_s}: must be positive")
     info = inspect(args.file, gap_threshold_s=args.gap_s)
     if args.json:
         print(json.dumps(info.to_json(), indent=1, default=str))

@@ -11,6 +11,8 @@ the shipped one) and publishes alert transitions on ``bsc/<robot>/alerts`` (also
 """
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 import sys
 from pathlib import Path
@@ -41,9 +43,9 @@ def run(args: argparse.Namespace) -> int:
     from gateway.zenoh_config import config_from_args
 
     if args.duration is not None and args.duration <= 0:
-        raise ValueError("--duration must be positive")
+        raise UserError("--duration must be positive")
     if args.refresh <= 0:
-        raise ValueError("--refresh must be positive")
+        raise UserError("--refresh must be positive")
     rules = load_rules(args.rules)
     live = not args.once
     tty = sys.stdout.isatty()

@@ -15,6 +15,8 @@ filters, a progress bar (``--quiet`` hides it).
 """
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 import sys
 
@@ -94,8 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if isinstance(args.file, str):         # run again by replay_can_log on the imported session
         args.file = [args.file]
     if args.bus and not any(is_can_log(f) for f in args.file):
-        raise ValueError("--bus maps the channels of a CAN log (.log, .asc, .blf, .trc, .csv); an MCAP log has buses")
-    from gateway.cli import UserError
+        raise UserError("--bus maps the channels of a CAN log (.log, .asc, .blf, .trc, .csv); an MCAP log has buses")
     from gateway.replay import parse_can_ids
 
     modes = [m for m, on in (("--out", args.out is not None), ("--interface", args.interface),

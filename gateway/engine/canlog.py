@@ -28,6 +28,8 @@ are channel ``-``, and a CSV export holds one bus.
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import contextlib
 import dataclasses
 import gzip
@@ -48,7 +50,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 JUMP_NS = 60 * 10**9                         # a bus silent this long: a clock jump, or logs joined
 
 
-class CanLogError(ValueError):
+class CanLogError(GatewayError, ValueError):
     """A CAN log that cannot be imported or exported as asked: one readable line."""
 
 

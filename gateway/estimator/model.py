@@ -17,6 +17,8 @@ array ``(p, 6)`` of ``[f, t]`` in arm order (``Robot.arms``).
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +27,7 @@ import pinocchio as pin
 from robot_description import Robot
 
 
-class EstimatorError(Exception):
+class EstimatorError(GatewayError):
     """Root of the estimator's errors."""
 
 

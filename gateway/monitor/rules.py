@@ -13,6 +13,8 @@ the value first crossed ``raise`` (so the hold time is part of the evidence, not
 """
 from __future__ import annotations
 
+from gateway.errors import GatewayError
+
 import fnmatch
 import tomllib
 from dataclasses import dataclass, field
@@ -27,7 +29,7 @@ LIVE_METRICS = ("friction_nm", "friction_fraction", "residual_nm", "efficiency",
                 "staleness_s", "loss_rate", "bus_load")
 
 
-class RulesError(ValueError):
+class RulesError(GatewayError, ValueError):
     """A rules file that cannot be read, or a rule with a bad key or value."""
 
 

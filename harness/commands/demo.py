@@ -20,6 +20,8 @@ misses, so that CI fails on an accuracy regression; ``--report-only`` reports mi
 """
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 import json
 from pathlib import Path
@@ -110,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = {}
     if args.duration is not None:
         if args.duration <= 0:
-            raise ValueError("--duration must be positive")
+            raise UserError("--duration must be positive")
         overrides["duration_s"] = float(args.duration)
     if args.robot:
         overrides["robot"] = args.robot

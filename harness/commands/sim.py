@@ -19,6 +19,8 @@ degradation instead, plus ``series.json`` (onset, per-session truth): the input 
 """
 from __future__ import annotations
 
+from gateway.cli import UserError
+
 import argparse
 import json
 import time
@@ -82,7 +84,7 @@ def _triples(values: list[str], flag: str, kinds) -> tuple:
                 raise ValueError
             out.append((parts[0], kinds[0](parts[1]), kinds[1](parts[2])))
         except ValueError:
-            raise ValueError(f"{flag} {v!r}: expected {flag[2:].upper().replace('-', '_')} as "
+            raise UserError(f"{flag} {v!r}: expected {flag[2:].upper().replace('-', '_')} as "
                              f"DEVICE:{'START_S:DURATION_S' if flag == '--silent' else 'AT_S:N'}") from None
     return tuple(out)
 
@@ -124,16 +126,16 @@ def run(args: argparse.Namespace) -> int:
     overrides = {}
     if args.duration is not None:
         if args.duration <= 0:
-            raise ValueError("--duration must be positive")
+            raise UserError("--duration must be positive")
         overrides["duration_s"] = float(args.duration)
     if args.seed is not None:
         overrides["seed"] = args.seed
     if args.robot:
         overrides["robot"] = args.robot
     if args.interface is None and _uses_can(args):
-        raise ValueError("--channel, --fd, --realtime, the bus options and the fault options need --interface")
+        raise UserError("--channel, --fd, --realtime, the bus options and the fault options need --interface")
     if args.rt_priority and not args.realtime:
-        raise ValueError("--rt-priority needs --realtime")
+        raise UserError("--rt-priority needs --realtime")
     from gateway.commands import check_rt_priority
 
     check_rt_priority(args.rt_priority)
@@ -219,19 +221,19 @@ def _run_series(args: argparse.Namespace) -> int:
     from harness.series import DEFAULT_DURATION_S, SERIES, write_series
 
     if args.series not in SERIES:
-        raise ValueError(f"--series {args.series!r}: choose one of {', '.join(SERIES)}")
+        raise UserError(f"--series {args.series!r}: choose one of {', '.join(SERIES)}")
     if args.interface or _uses_can(args) or args.robot or args.seed is not None or args.scenario != "capture":
-        raise ValueError("--series writes the capture task with its own seeds: it takes --sessions, --duration, "
+        raise UserError("--series writes the capture task with its own seeds: it takes --sessions, --duration, "
                          "--workers, --overwrite and --out only")
     if args.duration is not None and args.duration <= 0:
-        raise ValueError("--duration must be positive")
+        raise UserError("--duration must be positive")
     t0 = time.perf_counter()
     try:
         paths = write_series(args.series, args.sessions, args.out,
                              duration_s=args.duration or DEFAULT_DURATION_S, progress=not args.quiet,
                              workers=args.workers, overwrite=args.overwrite)
     except FileExistsError as exc:
-        raise ValueError(f"{exc}; --overwrite replaces it") from None
+        raise UserError(f"{exc}; --overwrite replaces it") from None
     truth = json.loads((args.out / "series.json").read_text())
     onset = truth["onset_session"]
     print(f"wrote {len(paths)} sessions of series {args.series!r} to {args.out}/ in "
