@@ -85,3 +85,18 @@ def test_a_demo_session_is_dated_by_the_wall_clock_of_its_run(tmp_path):
     start = next(m for m in res.metadata if m.name == "bsc.recording").metadata["session_start_utc"]
     t = datetime.datetime.fromisoformat(start.replace("Z", "+00:00")).timestamp() * 1e9
     assert before - 2e9 <= t <= after
+
+
+def test_the_installed_bsc_runs_every_command_outside_the_source_tree(tmp_path):
+    """As a user runs it: the installed ``bsc`` script, from a folder that is not the source tree
+    (nothing importable from the working directory), loads every subcommand (a package missing
+    from pyproject.toml's list, such as harness/, fails here)."""
+    from pathlib import Path
+
+    from gateway.cli import COMMANDS
+
+    exe = Path(sys.executable).parent / "bsc"
+    assert exe.exists(), "install the project (pip install -e .) first"
+    for name in COMMANDS:
+        r = subprocess.run([str(exe), name, "--help"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+        assert r.returncode == 0 and r.stdout.startswith(f"usage: bsc {name}"), (name, r.stderr[-1500:])
