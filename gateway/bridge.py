@@ -876,9 +876,13 @@ class GatewayService:
             return
         from gateway import keys
 
-        for h in self.health():
+        now = time.time_ns()
+        for h in self.health(now):
             with self._lock:
-                self.engine.emit(keys.for_sample(self.robot, h), h, self.engine.last_log_ns or 0)
+                # log time: the last frame's; before any frame, when the snapshot was taken (a
+                # log must not start in 1970 because the gateway waited for its buses)
+                last = self.engine.last_log_ns
+                self.engine.emit(keys.for_sample(self.robot, h), h, last if last is not None else now)
 
 
 class _Publish(Sink):

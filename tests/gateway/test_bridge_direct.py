@@ -404,3 +404,26 @@ def robot_description_load():
     import robot_description
 
     return robot_description.load("paper_robot")
+
+
+def test_health_before_the_first_frame_is_logged_at_the_time_it_was_taken(sessions, rig, tmp_path):  # noqa: F811
+    """A gateway waiting for its buses publishes health every period; recorded, those snapshots
+    carry the time they were taken, not log time 0 (a 60 s live recording started in 1970 with
+    84 of them); after the first frame, health carries the frames' log time."""
+    from gateway.recorder import Recorder
+    from gateway.replay import iter_file_order
+
+    pub_s, _ = sessions
+    path = tmp_path / "h.mcap"
+    before = time.time_ns()
+    with Recorder(path) as rec, GatewayService(rig.robot, rig.rx, pub_s, record=rec) as gw:
+        gw.publish_health()
+        after = time.time_ns()
+        rig.steps(20)
+        wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
+        assert gw.drain(WAIT_S)
+        gw.publish_health()
+    times = [m.log_time for t, _, m in iter_file_order(path, lambda t, s: "/health/" in t)]
+    first = [t for t in times if t >= before]
+    assert len(first) >= 10 and all(before <= t <= after for t in first)
+    assert min(times) < 10**9 and max(times) <= after          # then the frames' (simulated) time
