@@ -58,6 +58,8 @@ BENCHMARKS: dict[str, tuple[str, str, bool]] = {
     "replay": ("benchmarks.bench_replay", "offline replay through drivers + estimator", True),
     "latency": ("benchmarks.bench_latency", "gateway end-to-end latency (CAN -> zenoh subscriber)", True),
     "fuzz": ("benchmarks.fuzz_drivers", "driver fuzzing, 1 M frames (only with --fuzz or --only fuzz)", False),
+    "capacity": ("benchmarks.bench_capacity", "whole system for 60 s: firmware + gateway --record + monitor, "
+                 "frames shed (root; only with --only capacity)", False),
 }
 # Rows of these groups that carry no "anchor" key at all get this anchor when the units agree.
 DEFAULT_ANCHOR = {"latency": "zenoh_rtt"}

@@ -58,6 +58,9 @@ def test_absent_or_broken_benchmark_is_a_row(monkeypatch):
         suite.selection(["nope"], fuzz=False)
     assert "fuzz" not in suite.selection(None, fuzz=False)[1]
     assert "fuzz" in suite.selection(None, fuzz=True)[1]
+    # the 60 s whole-system run needs root and a minute: only when named
+    assert "capacity" not in suite.selection(None, fuzz=True)[1]
+    assert suite.selection(["capacity"], fuzz=False)[1] == ["capacity"]
 
 
 def test_bsc_bench_json():
