@@ -581,6 +581,28 @@ class Recorder:
         """Queue one record already encoded as this recorder encodes a ``cls`` dataclass (the
         JSON of its fields, e.g. written from rows by :mod:`gateway.engine.encode`); the channel
         is ``cls``'s, as :meth:`record` declares it. Returns ``False`` when refused (counted)."""
+        info = self._encoded_topic(topic, cls, log_time_ns)
+        return self._put((info.key, int(log_time_ns), time.time_ns(), data))
+
+    def record_encoded_many(self, items) -> int:
+        """:meth:`record_encoded` for many ``(topic, cls, data, log_time_ns)`` at once, queued in
+        their order (one look at the queue's room); returns how many were refused (counted)."""
+        now = time.time_ns()
+        out = [(self._encoded_topic(topic, cls, t).key, int(t), now, data) for topic, cls, data, t in items]
+        queue = self._queue
+        take = 0 if self._closed else max(0, min(len(out), self._queue_size - len(queue)))
+        queue.extend(out if take == len(out) else out[:take])
+        refused = len(out) - take
+        if refused:
+            with self._lock:
+                if self._closed:
+                    self._dropped_closed += refused
+                else:
+                    self._dropped_full += refused
+        return refused
+
+    def _encoded_topic(self, topic: str, cls: type, log_time_ns: int) -> _Topic:
+        """The topic of ``cls`` records (declared on first use); its type and the time checked."""
         info = self._topics.get(topic)
         if info is None:
             with self._lock:
@@ -590,38 +612,7 @@ class Recorder:
                             f"got {cls.__name__}")
         if log_time_ns < 0:
             raise ValueError(f"topic {topic}: log time {log_time_ns} ns is negative")
-        return self._put((info.key, int(log_time_ns), time.time_ns(), data))
-
-    def record_encoded_many(self, items) -> int:
-        """:meth:`record_encoded` for many ``(topic, cls, data, log_time_ns)`` at once (one look
-        at the queue's room); returns how many were refused (counted)."""
-        now = time.time_ns()
-        topics = self._topics
-        out = []
-        for topic, cls, data, t in items:
-            info = topics.get(topic)
-            if info is None or info.cls is not cls:
-                if not self.record_encoded(topic, cls, data, t):     # declares it, checks the type
-                    return len(items) - len(out)                   # full or closed: counted there
-                out.append(None)
-                continue
-            if t < 0:
-                raise ValueError(f"topic {topic}: log time {t} ns is negative")
-            out.append((info.key, t, now, data))
-        queue = self._queue
-        room = self._queue_size - len(queue)
-        todo = [x for x in out if x is not None]
-        if self._closed or room < len(todo):
-            take = 0 if self._closed else max(0, room)
-            queue.extend(todo[:take])
-            with self._lock:
-                if self._closed:
-                    self._dropped_closed += len(todo) - take
-                else:
-                    self._dropped_full += len(todo) - take
-            return len(todo) - take
-        queue.extend(todo)
-        return 0
+        return info
 
     def record_can(self, bus: str, msg, log_time_ns: int | None = None) -> bool:
         """Queue one raw CAN frame (python-can ``Message``) on topic ``/can/<bus>``."""

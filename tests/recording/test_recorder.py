@@ -372,3 +372,25 @@ def test_frames_given_as_rows_take_any_channel_a_bus_may_have(channel):
     msg = can.Message(timestamp=1.5, arbitration_id=0x123, data=b"\x01\x02", channel=channel)
     rows = columns_from_messages([(0, msg)])
     assert can_frame_json_rows(rows, channel) == [can_frame_json(msg)[1]]
+
+
+def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_path):
+    """record_encoded_many (the row sinks' path): a batch that declares new topics half way is
+    written in its own order, and what the queue has no room for is refused and counted."""
+    from gateway.efforts import Alert
+    from gateway.recorder import _dataclass_json
+    from gateway.replay import iter_file_order
+
+    def alert(k):
+        return Alert("r", "sensor", "imu", "x", "info", "raised", k, k, f"n{k}")
+
+    enc = _dataclass_json(Alert)
+    batch = [(f"/a/{k % 3}", Alert, enc(alert(k)).encode(), 10 + k) for k in range(9)]
+    path = tmp_path / "b.mcap"
+    with Recorder(path) as rec:
+        assert rec.record_encoded_many(batch) == 0
+    assert [(t, m.log_time) for t, _, m in iter_file_order(path)] == [(b[0], b[3]) for b in batch]
+
+    with Recorder(tmp_path / "full.mcap", queue_size=4) as rec:
+        refused = rec.record_encoded_many(batch)
+        assert 5 <= refused <= 9 and rec.stats.dropped_queue_full == refused
