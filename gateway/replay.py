@@ -24,13 +24,12 @@ file (killed recorder) is recovered into a temporary copy first (:func:`readable
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import collections
 import contextlib
 import dataclasses
 import fnmatch
 import heapq
+import io
 import json
 import os
 import re
@@ -46,6 +45,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from gateway.errors import GatewayError
 from gateway import mcaplog
 from gateway.mcaplog import McapFileError
 from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX,
@@ -177,8 +177,6 @@ def _record_at(f, offset: int, length: int, kind):
     body = f.read(n)
     if len(body) < n or n + 9 != length:
         raise ValueError(f"record at offset {offset} is cut short")
-    import io
-
     return kind.read(ReadDataStream(io.BytesIO(body)))
 
 
@@ -782,19 +780,17 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                 def sample_rows(self, session, events, log_ns) -> None:
                     table = self._keys(session).sample_key
                     kinds["samples"] += len(events)
-                    for kd, dv in zip(events["kind"].tolist(), events["device"].tolist()):
-                        by_key[table[kd][dv]] += 1
+                    # a count per (kind, device) of the batch, not a Python step per sample
+                    pair = events["kind"].astype(np.int64) << 32 | events["device"].astype(np.int64)
+                    for p, n in zip(*(a.tolist() for a in np.unique(pair, return_counts=True))):
+                        by_key[table[p >> 32][p & 0xFFFFFFFF]] += n
 
                 def effort_rows(self, session, rows, log_ns) -> None:
-                    est = session.pipeline.estimator
                     names = self._keys(session).effort_key
-                    flags = rows["flags"].astype(bool)
-                    good = [int((~flags[:, bits].any(axis=1)).sum()) for bits in est._arm_bits]
-                    good.append(int((~flags[:, est._thr_bits].any(axis=1)).sum()))
                     for key in names:
                         by_key[key] += len(rows)
                     kinds["efforts"] += len(rows) * len(names)
-                    kinds["good_efforts"] += sum(good)
+                    kinds["good_efforts"] += session.pipeline.estimator.good_efforts(rows)
 
                 def emit(self, key: str, obj, log_ns: int) -> None:
                     by_key[key] += 1
@@ -822,6 +818,17 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             first = last = None
             last_bar = None
             t0 = time.perf_counter()
+
+            def advanced(t_first: int, t_last: int) -> None:
+                """Frames up to log time ``t_last`` fed: the log's span so far, the progress bar."""
+                nonlocal first, last, last_bar
+                if first is None:
+                    first = last_bar = t_first
+                last = t_last
+                if bar is not None and last - last_bar >= 100_000_000:
+                    bar.update((last - last_bar) / 1e9)
+                    last_bar = last
+
             # rows straight from the chunks; copied frames need all of each record (its channel),
             # which rows do not keep: then record by record
             chunks = None if copy_can else mcap_frames(src, buses, start_ns=start_ns, end_ns=end_ns,
@@ -842,12 +849,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     rows["bus"] = idx
                     ses.feed_frames(rows, log)
                     frames += len(rows)
-                    if first is None:
-                        first = last_bar = int(log[0])
-                    last = int(log[-1])
-                    if bar is not None and last - last_bar >= 100_000_000:
-                        bar.update((last - last_bar) / 1e9)
-                        last_bar = last
+                    advanced(int(log[0]), int(log[-1]))
             else:                             # no summary, or frames copied: record by record
                 for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
                                                    start_ns=start_ns, end_ns=end_ns):
@@ -856,12 +858,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                         continue
                     ses.feed(bus, msg, log_ns=t)
                     frames += 1
-                    if first is None:
-                        first = last_bar = t
-                    last = t
-                    if bar is not None and t - last_bar >= 100_000_000:
-                        bar.update((t - last_bar) / 1e9)
-                        last_bar = t
+                    advanced(t, t)
             if bar is not None:
                 bar.close()
             final = ses.close()              # end of input: epochs still waiting, last health

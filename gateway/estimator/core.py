@@ -659,6 +659,12 @@ class EstimatorCore:
     def epochs(self) -> int:
         return int(self._si[_EPOCHS])
 
+    def good_efforts(self, rows: np.ndarray) -> int:
+        """How many efforts of the effort ``rows`` are good: per arm and for the thrusters, none of
+        the flags that concern it set (as the published ``good``)."""
+        flags = rows["flags"].astype(bool)
+        return sum(int((~flags[:, bits].any(axis=1)).sum()) for bits in (*self._arm_bits, self._thr_bits))
+
     @property
     def good(self) -> int:
         return int(self._si[_GOOD])
