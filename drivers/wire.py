@@ -21,8 +21,6 @@ which ids. Bus load arithmetic (classic and FD, worst-case bit stuffing) lives h
 """
 from __future__ import annotations
 
-from drivers.errors import DriverError
-
 import functools
 import math
 import struct
@@ -31,6 +29,8 @@ from pathlib import Path
 from typing import Iterable
 
 import cantools
+
+from drivers.errors import DriverError
 
 DBC_DIR = Path(__file__).parent / "dbc"
 DBC_FILES = {"arm": DBC_DIR / "bsc_arm.dbc", "spacecraft": DBC_DIR / "bsc_spacecraft.dbc"}

@@ -52,8 +52,6 @@ a replay are identical to the live ones.
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError  # noqa: F401 - the service's errors' root
-
 import contextlib
 import dataclasses
 import logging
@@ -68,6 +66,7 @@ import can
 import numpy as np
 from numba import njit
 
+from gateway.errors import GatewayError  # noqa: F401 - the service's errors' root
 from drivers import wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.kernel import FRAME_DTYPE, columns_from_messages

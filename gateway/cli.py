@@ -4,12 +4,12 @@ Errors are one clear line on stderr and a non-zero exit; ``--debug`` shows the t
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import argparse
 import importlib
 import os
 import sys
+
+from gateway.errors import GatewayError
 
 # name -> (module in gateway.commands, or a full module path, one-line help). Imported only when
 # chosen: the harness's commands (demo, sim: they run the simulator) are found by name, so the

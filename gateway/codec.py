@@ -16,14 +16,13 @@ not held for batching: a few messages per step; in the latency benchmark the hop
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import dataclasses
 import json
 import time
 import types
 import typing
 
+from gateway.errors import GatewayError
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort

@@ -27,7 +27,6 @@ controller: in a deployment only a configured controller may publish there
 from __future__ import annotations
 
 from gateway.errors import GatewayError
-
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort

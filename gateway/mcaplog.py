@@ -16,8 +16,6 @@ one readable line that names the file.
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import dataclasses
 import io
 import json
@@ -33,6 +31,8 @@ from mcap.opcode import Opcode
 from mcap.records import (Attachment, Channel, Chunk, DataEnd, Footer, Header, Message,
                           Metadata, Schema)
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+
+from gateway.errors import GatewayError
 
 try:
     from zstandard import ZstdError as _ZstdError

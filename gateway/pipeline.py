@@ -17,13 +17,12 @@ that produced the object (its log time in a recording). Nothing here does I/O or
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 from typing import Callable
 
 import can
 import numpy as np
 
+from gateway.errors import GatewayError
 from drivers import wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.kernel import DriverCore, columns_from_messages

@@ -28,8 +28,6 @@ are never dropped.
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import base64
 import collections
 import dataclasses
@@ -47,6 +45,8 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from gateway.errors import GatewayError
 
 CAN_TOPIC_PREFIX = "/can/"
 CAN_SCHEMA_NAME = "bsc.CanFrame"

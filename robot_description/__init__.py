@@ -14,8 +14,6 @@ Arms are found from the links, not from a count: any number of arms with any num
 """
 from __future__ import annotations
 
-from robot_description.errors import DescriptionError  # noqa: F401 - the package's errors' root
-
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -23,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+
+from robot_description.errors import DescriptionError  # noqa: F401 - the package's errors' root
 
 URDF_DIR = Path(__file__).parent / "urdf"
 BUILTIN = {p.stem: p for p in sorted(URDF_DIR.glob("*.urdf"))}

@@ -17,14 +17,14 @@ simulator's flight software needs all six.
 """
 from __future__ import annotations
 
-from robot_description.errors import DescriptionError
-
 import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from robot_description.errors import DescriptionError
 
 # rows (x, y, z, fx, fy, fz): positions in m, force directions (normalised on load).
 # "ring18" for the paper's 4.2 m cylinder (rim radius 2.1 m, height 2 m), target on +x:

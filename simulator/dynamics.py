@@ -23,13 +23,13 @@ at the start of that step.
 """
 from __future__ import annotations
 
-from simulator.errors import SimulatorError
-
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+
+from simulator.errors import SimulatorError
 
 
 class DivergenceError(SimulatorError, ValueError):

@@ -29,8 +29,6 @@ drivers' health then reports (:meth:`Firmware.expected_health` computes it).
 """
 from __future__ import annotations
 
-from simulator.errors import SimulatorError
-
 import contextlib
 import ipaddress
 import math
@@ -42,6 +40,7 @@ from typing import Callable, Mapping
 
 import can
 
+from simulator.errors import SimulatorError
 from drivers.wire import udp_port  # noqa: F401 - part of this module's API
 from drivers import frames, wire
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample

@@ -6,13 +6,13 @@ silently runs the default.
 """
 from __future__ import annotations
 
-from simulator.errors import SimulatorError
-
 import copy
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
+
+from simulator.errors import SimulatorError
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 BUILTIN = {p.stem: p for p in sorted(SCENARIO_DIR.glob("*.toml"))}

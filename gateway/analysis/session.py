@@ -25,14 +25,14 @@ estimated thruster wrench is the momentum balance of F/T sensors and IMU and mus
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import json
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+
+from gateway.errors import GatewayError
 
 JOINT_SCHEMA = "gateway.efforts.JointEfforts"
 THRUSTER_SCHEMA = "gateway.efforts.ThrusterEffort"

@@ -11,11 +11,11 @@ and CUSUM change detection (thresholds in the rules file, docs/monitoring.md).
 """
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
 import sys
 from pathlib import Path
+
+from gateway.cli import UserError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

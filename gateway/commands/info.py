@@ -1,9 +1,9 @@
 """``bsc info FILE``: what an MCAP log holds, and whether it is complete or needs recovering."""
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
+
+from gateway.cli import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

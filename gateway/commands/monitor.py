@@ -11,11 +11,11 @@ the shipped one) and publishes alert transitions on ``bsc/<robot>/alerts`` (also
 """
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
 import sys
 from pathlib import Path
+
+from gateway.cli import UserError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

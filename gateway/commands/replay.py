@@ -15,10 +15,10 @@ filters, a progress bar (``--quiet`` hides it).
 """
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
 import sys
+
+from gateway.cli import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -28,8 +28,6 @@ are channel ``-``, and a CSV export holds one bus.
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import contextlib
 import dataclasses
 import gzip
@@ -40,6 +38,8 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from gateway.errors import GatewayError
 
 FORMATS = {".log": "candump -L", ".asc": "Vector ASC", ".blf": "Vector BLF", ".trc": "PEAK TRC",
            ".csv": "python-can CSV"}

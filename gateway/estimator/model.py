@@ -17,13 +17,12 @@ array ``(p, 6)`` of ``[f, t]`` in arm order (``Robot.arms``).
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
+from gateway.errors import GatewayError
 from robot_description import Robot
 
 

@@ -13,13 +13,12 @@ the value first crossed ``raise`` (so the hold time is part of the evidence, not
 """
 from __future__ import annotations
 
-from gateway.errors import GatewayError
-
 import fnmatch
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gateway.errors import GatewayError
 from gateway.efforts import Alert
 
 DEFAULT_RULES = Path(__file__).resolve().parent.parent / "rules" / "default.toml"

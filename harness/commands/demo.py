@@ -20,11 +20,11 @@ misses, so that CI fails on an accuracy regression; ``--report-only`` reports mi
 """
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
 import json
 from pathlib import Path
+
+from gateway.cli import UserError
 
 SWEEP = (0.5, 1.0, 2.0, 4.0)
 WRONG_MODEL = 0.05

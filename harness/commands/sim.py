@@ -19,12 +19,12 @@ degradation instead, plus ``series.json`` (onset, per-session truth): the input 
 """
 from __future__ import annotations
 
-from gateway.cli import UserError
-
 import argparse
 import json
 import time
 from pathlib import Path
+
+from gateway.cli import UserError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
