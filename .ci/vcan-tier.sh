@@ -4,7 +4,7 @@
 # spacecraft; three_arm four). .ci/run runs it after the main suite.
 #
 #   .ci/vcan-tier.sh [PYTEST OPTIONS...]             every test marked vcan, e.g. -x --durations=0
-#   .ci/vcan-tier.sh [PYTEST OPTIONS...] PATH...     only those files/dirs/node ids, e.g. -x tests/vcan
+#   .ci/vcan-tier.sh [PYTEST OPTIONS...] PATH...     only those files/dirs/node ids, e.g. -x tests/system/vcan
 #
 # Uses the venv the main job made (.ci/run or the README's test command). Python runs about
 # 14x slower under QEMU's TCG (interpreter start and imports ~20x), so:

@@ -3,7 +3,7 @@
 #
 #   .ci/vcan-vm.sh [--] COMMAND [ARGS...]        exit status = COMMAND's exit status
 #   e.g.  .ci/vcan-vm.sh ip -br link
-#         BSC_VM_VCANS=3 .ci/vcan-vm.sh .venv/bin/python -m pytest -m vcan tests/vcan
+#         BSC_VM_VCANS=3 .ci/vcan-vm.sh .venv/bin/python -m pytest -m vcan tests/system/vcan
 #
 # Why: the CI host's kernel has no CAN modules, so the SocketCAN tier boots a stock Debian
 # kernel (which has them) under QEMU and runs the command there. Adapted for bsc from

@@ -79,7 +79,7 @@ TARGET_P99_US = 1000.0
 WARMUP_S = 1.0                  # efforts whose completing frame came in the first second are not counted
 SCENARIO = "capture"
 GROUP_BASE = "239.74.163."      # one multicast group per bus (docs/firmware.md)
-RCVBUF = 16 << 20               # as tests/firmware/_udp_child.py: a starved reader must not lose frames
+RCVBUF = 16 << 20               # as tests/simulator/firmware/_udp_child.py: a starved reader must not lose frames
 SO_TIMESTAMPNS = 35
 SO_RCVBUFFORCE = 33             # Linux; not exported by Python's socket module
 QUICK_SECONDS = 4.0
@@ -558,7 +558,7 @@ def _ip(*args):
 
 @contextlib.contextmanager
 def private_netns():
-    """A private network namespace with multicast on its loopback (as tests/firmware/test_firmware_udp.py);
+    """A private network namespace with multicast on its loopback (as tests/simulator/firmware/test_firmware_udp.py);
     yields its name, or None when one cannot be made (not root, no iproute2)."""
     if shutil.which("ip") is None or os.geteuid() != 0:
         yield None

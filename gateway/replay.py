@@ -6,7 +6,7 @@ Three engines over one reader:
   them, through a fresh :class:`gateway.pipeline.Pipeline` as fast as it can, records every
   sample, health report and effort it emits to a new MCAP file, and writes ``report.json``.
   Same frames in the same order give the same emits, so the efforts are byte-identical to the
-  ones recorded live (``tests/recording/test_replay.py``).
+  ones recorded live (``tests/gateway/recording/test_replay.py``).
 - :func:`play_can` puts the raw frames back on python-can buses with their original spacing
   (scaled by ``rate``).
 - :func:`play_zenoh` republishes the recorded samples, health and efforts on their keys, with

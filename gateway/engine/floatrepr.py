@@ -14,7 +14,7 @@ when the decimal exponent is in [-4, 16), else ``d.ddde+XX`` with at least two e
 ``.0`` after an integer, ``-0.0`` for negative zero.
 
 Tested against ``repr`` on millions of random bit patterns and every boundary case
-(tests/engine/test_floatrepr.py). Non-finite values are the caller's to avoid (JSON has none):
+(tests/gateway/engine/test_floatrepr.py). Non-finite values are the caller's to avoid (JSON has none):
 :func:`write_float` writes nothing and returns -1 for them.
 """
 from __future__ import annotations

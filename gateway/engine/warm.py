@@ -11,7 +11,7 @@ gateway's own receive paths (SocketCAN and ``udp_multicast`` datagrams read stra
 the direct mode's backlog, the recorder's and publisher's JSON written from rows): numba compiles
 a kernel once per argument types, so every path that calls a kernel differently must run here.
 The kernels do not depend on the robot, so every robot then starts at once.
-``tests/engine/test_warm.py`` checks that a gateway run after this compiles nothing.
+``tests/gateway/engine/test_warm.py`` checks that a gateway run after this compiles nothing.
 """
 from __future__ import annotations
 

@@ -34,7 +34,7 @@ fused multiply-add), and nothing but the state arrays carries from one event to 
 the numpy form (LU solve, BLAS sums, symmetrisation) they differ by rounding only. Measured after
 4000 updates (paper_robot, 18 valves, 500 Hz IMU; the 8 s capture session of ``bsc demo`` and a
 simulated stream): x within 4e-14 of max|x| (3e-12 of each state's sigma), P within 8e-14 of the
-correlation scale sqrt(P_ii P_jj) (tests/estimator/test_thruster_kernel.py checks 1e-9). The prior
+correlation scale sqrt(P_ii P_jj) (tests/gateway/estimator/test_thruster_kernel.py checks 1e-9). The prior
 is the numpy form's, computed once by it.
 
 History matching is the numpy form's: a ring of the last ``2 imu_steps + 2`` pushed steps, in push

@@ -6,7 +6,7 @@ fault knobs of docs/firmware.md) -> python-can ``virtual`` buses -> :class:`Gate
 (drivers + estimator, one worker thread) -> zenoh on loopback -> a subscriber session that
 collects the efforts and the health. The firmware runs in lockstep (frames stamped with the
 simulated time); the test keeps it at most a few hundred frames ahead of the gateway, so nothing
-is dropped for load here (tests/faults/test_load.py does that).
+is dropped for load here (tests/system/faults/test_load.py does that).
 
 The oracle is independent of the gateway:
 

@@ -22,7 +22,7 @@ from gateway.monitor.service import MonitorService
 from gateway.zenoh_config import make_config
 from support import free_port
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 ROBOT = "paper_robot"          # built in: torque limits known (arm0/j2: 300 N m)
 RULES = """
 [monitor]

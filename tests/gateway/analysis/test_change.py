@@ -16,7 +16,7 @@ from gateway.analysis.session import AxisFit, JointFit, SessionFeatures
 
 from .synth import write_session
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 JOINTS = ("arm0/j1", "arm0/j2", "arm1/j1", "arm1/j2")
 
 

@@ -2,7 +2,7 @@
 kind of log bsc writes, every schema is one Foxglove's JSON-schema loader takes, and every message
 validates against its schema (ajv); foxglove.* schemas against the published ones.
 
-Needs node and the npm packages of ``tests/foxglove`` (``.ci/foxglove-tier.sh`` installs them with
+Needs node and the npm packages of ``tests/system/foxglove`` (``.ci/foxglove-tier.sh`` installs them with
 ``npm ci`` and runs these tests; CI runs that tier after the main suite). Without them the tests
 are skipped with that reason."""
 from __future__ import annotations
@@ -18,14 +18,15 @@ import can
 import pytest
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parents[1]
+ROOT = HERE.parents[2]
 READY = shutil.which("node") is not None and (HERE / "node_modules" / "@mcap" / "core").is_dir()
 
 if not READY and os.environ.get("BSC_FOXGLOVE_TIER"):
-    raise RuntimeError("the Foxglove tier needs node and tests/foxglove/node_modules (npm ci --prefix tests/foxglove)")
+    raise RuntimeError("the Foxglove tier needs node and tests/system/foxglove/node_modules "
+                       "(npm ci --prefix tests/system/foxglove)")
 
 pytestmark = [pytest.mark.foxglove,
-              pytest.mark.skipif(not READY, reason="needs node and tests/foxglove/node_modules: "
+              pytest.mark.skipif(not READY, reason="needs node and tests/system/foxglove/node_modules: "
                                                    "run .ci/foxglove-tier.sh (npm ci)")]
 
 

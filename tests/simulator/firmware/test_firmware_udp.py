@@ -18,7 +18,7 @@ from simulator import scenario
 from simulator.engine import Simulation
 
 CHILD = Path(__file__).with_name("_udp_child.py")
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DURATION_S = 1.0
 
 

@@ -123,7 +123,7 @@ class Gateway:
 
 
 class Sender:
-    """The separate sender process (tests/vcan/_vcan_traffic.py)."""
+    """The separate sender process (tests/system/vcan/_vcan_traffic.py)."""
 
     def __init__(self):
         args = [f"{b}={c}" for b, c in CHANNELS.items()]

@@ -1,7 +1,7 @@
 """Deterministic traffic for the SocketCAN tier, and the sender process that puts it on the wire.
 
 The same module serves both sides: the test builds the expected samples with :func:`sample_messages`,
-the sender process (``python tests/vcan/_vcan_traffic.py CHANNELS``, a separate process as a real
+the sender process (``python tests/system/vcan/_vcan_traffic.py CHANNELS``, a separate process as a real
 device would be) sends them on real SocketCAN buses. It is driven line by line on stdin::
 
     samples <bus> <first> <count>   send samples with counters first..first+count-1 of <bus>

@@ -26,7 +26,7 @@ import zenoh
 from gateway.zenoh_config import make_config
 from support import free_port
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 KEY = "bsc/restart_test/alerts"
 WAIT_S = 15.0
 FAST_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}

@@ -100,7 +100,7 @@ def test_bsc_sim_series_through_the_real_pipeline_then_bsc_analyze(tmp_path):
     import sys
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     out = tmp_path / "tl"
 

@@ -3,7 +3,7 @@
 Plain Python on Pinocchio and numpy: the sync policy written with lists, dicts and sets, the maths
 by the reference functions of :mod:`gateway.estimator.torques` (Pinocchio's ``rnea`` and LAPACK's
 least squares) and :class:`gateway.estimator.thrusters.ThrusterFilter`. The product runs the
-compiled :class:`gateway.estimator.core.EstimatorCore`; ``tests/estimator/test_core.py`` feeds both
+compiled :class:`gateway.estimator.core.EstimatorCore`; ``tests/gateway/estimator/test_core.py`` feeds both
 the same samples and requires the same epochs, flags and commanded values, and efforts within
 1e-9 of their scale. Slow on purpose (a few hundred us per epoch): it is written to be read.
 
@@ -20,7 +20,7 @@ Synchronisation policy (docs/estimator.md, "Live"):
   flagged; so is the oldest epoch when more than ``max_open`` are waiting (a silent bus).
 - Slower streams are applied to the first epoch that is at least half a period later than
   their timestamp: IMU samples (they update the thruster filter and the base rate), torque and
-  thruster commands (the "commanded" fields). Their maximum age: ``stale_periods`` of their own
+  thruster commands (the "commanded" fields). Their maximum age: ``imu_max_age_periods`` of their own
   period; older means ``stale:<device>``. What arrived by the time an epoch is computed is
   applied right after its efforts are out, the rest when the next epoch is computed.
 - A missing joint state holds the previous one (``stale:<arm>/<joint>``, that arm's efforts not
@@ -50,7 +50,7 @@ from robot_description.thrusters import ThrusterLayout
 @dataclass(frozen=True)
 class LiveSettings:
     max_open: int = 20                 # epochs waiting for members before the oldest is forced out
-    stale_periods: int = 3             # a slower stream older than this many of its periods is stale
+    imu_max_age_periods: int = 3       # the IMU sample an epoch uses may be this many IMU periods old
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
 
 
@@ -124,7 +124,7 @@ class LiveEstimator:
         self._valves_cache: dict[int, np.ndarray] = {}
         self._no_valves = np.zeros(self.layout.n)
         self._no_valves.setflags(write=False)
-        self._stale_imu_ns = self.settings.stale_periods * self.imu_period_ns
+        self._stale_imu_ns = self.settings.imu_max_age_periods * self.imu_period_ns
 
     # -- input -------------------------------------------------------------------------------
     def add(self, sample) -> None:

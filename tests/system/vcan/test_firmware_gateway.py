@@ -4,7 +4,7 @@ both through their command lines, as deployed (README: ``bsc gateway --interface
     bsc sim     --interface socketcan -c arm0=vcan0 -c arm1=vcan1 -c spacecraft=vcan2   (lockstep)
     bsc gateway --interface socketcan -c arm0=vcan0 ... --record gw.mcap                (drivers + estimator)
 
-Judged like the in-process bus tiers (tests/firmware): every sample the gateway published equals
+Judged like the in-process bus tiers (tests/simulator/firmware): every sample the gateway published equals
 the simulator's reading of the same step within the wire quantization, none missing or extra;
 its health counts every frame and sample exactly, nothing lost or rejected. SocketCAN stamps
 frames on reception (host clock) and the lockstep firmware runs as fast as the host lets it, far
@@ -35,8 +35,8 @@ from pathlib import Path
 import pytest
 
 HERE = Path(__file__).parent
-ROOT = HERE.parents[1]
-sys.path.insert(0, str(HERE.parent / "firmware"))   # the schedule and the comparison of tests/firmware
+ROOT = HERE.parents[2]
+sys.path.insert(0, str(ROOT / "tests" / "simulator" / "firmware"))   # the schedule and comparison of the firmware tests
 
 from firmware_rig import by_device, check_against_readings, snapshot  # noqa: E402
 from support import free_port as _free_port  # noqa: E402

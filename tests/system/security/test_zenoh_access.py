@@ -25,7 +25,7 @@ import pytest
 import zenoh
 from support import free_port
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DEPLOY = ROOT / "deploy" / "zenoh"
 ROBOT = "paper_robot"
 PASSWORDS = {"gateway": "gw-secret", "controller": "ctl-secret", "observer": "obs-secret", "intruder": "in-secret"}
