@@ -21,7 +21,8 @@ Synchronisation policy (unchanged from the first wave; docs/estimator.md):
 - Flags: a missing joint state holds the previous one (``stale:<arm>/<joint>``); a missing F/T
   sample or valve command makes every estimate of the epoch not good (``missing:<device>``);
   saturated or faulty inputs flag ``saturated:<device>`` / ``fault:<device>``; ``warmup`` until
-  the first IMU sample; ``stale:imu`` when it is older than ``stale_periods`` IMU periods.
+  the first IMU sample; ``stale:imu`` when it is older than ``imu_max_age_periods`` IMU periods
+  (the drivers' ``stale_periods`` is another thing: when a device's health says stale).
 
 Data (all numpy, owned by :class:`EstimatorCore`): sample rows in (:data:`SAMPLE_DTYPE`), per
 epoch an output row (:data:`EFFORT_DTYPE`: times, torques, thruster wrench, commanded values and
@@ -76,7 +77,7 @@ J_STALE, J_MISSING, J_SATURATED, J_FAULT = range(4)
 @dataclass(frozen=True)
 class CoreSettings:
     max_open: int = 20                 # epochs waiting for members before the oldest is forced out
-    stale_periods: int = 3             # a slower stream older than this many of its periods is stale
+    imu_max_age_periods: int = 3       # an epoch's IMU sample may be this many IMU periods old (older: stale:imu)
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
     pending_capacity: int = 1 << 14    # slower-stream samples waiting for an epoch (oldest dropped beyond)
     held_capacity: int = 1 << 14       # samples held while the grid's phase is learnt
@@ -610,7 +611,7 @@ class EstimatorCore:
         self.arm_index = {a: i for i, a in enumerate(self.arms)}
         self.flag_names = flag_names(robot)
         self.dtype = effort_dtype(p, nj, len(self.flag_names))
-        self.cfg = np.array([period, period // 2, p, nj, imu_period, s.stale_periods * imu_period, s.max_open,
+        self.cfg = np.array([period, period // 2, p, nj, imu_period, s.imu_max_age_periods * imu_period, s.max_open,
                              PHASE_LEARN_SAMPLES, PHASE_TRACK, wire.FT_FAULT, wire.IMU_FAULT, wire.DRIVE_FAULT],
                             dtype=np.int64)
         cap = s.max_open + 8
