@@ -301,6 +301,7 @@ def role_gateway(a) -> int:
 
     from drivers.wire import WireMap
     from gateway.bridge import GatewayService
+    from gateway.config import GatewayConfig
     from gateway.commands.gateway import freeze_heap
     from gateway.zenoh_config import make_config
 
@@ -321,8 +322,9 @@ def role_gateway(a) -> int:
             stack.callback(bus.shutdown)
         conf = make_config(connect=[a.endpoint]) if a.router else make_config(listen=[a.endpoint])
         session = stack.enter_context(zenoh.open(conf))
-        gw = GatewayService(robot, buses, session, health_period_s=0.5, layout=layout, estimate=not a.no_estimate,
-                            publish_samples=not a.no_samples, receive=a.receive)
+        config = GatewayConfig().updated(service={"estimate": not a.no_estimate, "publish_samples": not a.no_samples},
+                                         can={"receive": a.receive})
+        gw = GatewayService(robot, buses, session, config, layout=layout)
         from gateway import keys as _keys
         from gateway.engine import Sink
 

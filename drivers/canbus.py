@@ -77,6 +77,24 @@ def bus_kwarg(text: str) -> tuple[str, Any]:
     return key, _value(value)
 
 
+CHANNEL_HELP = "channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable)"
+
+
+def add_can_arguments(group, *, interface_help: str | None = "python-can interface: socketcan, udp_multicast, "
+                      "pcan, kvaser, vector, virtual, ...", channel_help: str = CHANNEL_HELP,
+                      fd_help: str = "the buses run CAN FD (same frames, bit-rate switch)") -> None:
+    """The CAN options of every command that opens a robot's buses, on ``group`` (an argparse
+    group): ``-i/--interface`` (unless ``interface_help`` is None: the command places it itself),
+    ``-c/--channel``, ``--fd``, ``-b/--bitrate``, ``--data-bitrate``, ``--bus-kwarg``. Nothing
+    has a default here (``None``, ``[]``, ``False``): the command decides, or its configuration."""
+    if interface_help is not None:
+        group.add_argument("--interface", "-i", default=None, metavar="NAME", help=interface_help)
+    group.add_argument("--channel", "-c", action="append", default=[], metavar="PREFIX|BUS=CHANNEL",
+                       help=channel_help)
+    group.add_argument("--fd", action="store_true", help=fd_help)
+    add_bus_arguments(group)
+
+
 def add_bus_arguments(group) -> None:
     """``-b/--bitrate``, ``--data-bitrate`` and ``--bus-kwarg`` on a command that opens buses."""
     from drivers.wire import BITRATE, FD_DATA_BITRATE

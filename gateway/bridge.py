@@ -68,17 +68,16 @@ from numba import njit
 
 from gateway.errors import GatewayError  # noqa: F401 - the service's errors' root
 from drivers import wire
-from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.kernel import FRAME_DTYPE, columns_from_messages
 from drivers.receive import reader_for
 from drivers.samples import BusHealth
 from gateway import codec
 from gateway.engine import Session, Sink
+from gateway.config import DEFAULT_MAX_BACKLOG, RECEIVE_MODES, GatewayConfig  # noqa: F401 - the service's settings
 from gateway.engine.sinks import RecorderSink
 
 log = logging.getLogger(__name__)
 _STOP = object()
-DEFAULT_MAX_BACKLOG = 10_000         # frames waiting for the worker (all buses together)
 RESUME_FRACTION = 0.9                # after an overflow, accept frames again below this fill
 FIRST_BACKOFF_S = 0.01               # first wait after a failed recv; doubles up to retry_s
 OVERFLOW_LOG_EVERY_S = 10.0
@@ -89,7 +88,6 @@ IDLE_POLL_S = 0.1                    # direct mode: longest wait in poll (stop, 
 QUIET_S = 0.001                      # direct mode: no frame for this long -> publish the held samples
                                      # (poll's resolution: 1 ms)
 SAMPLES_HELD_MAX = 512               # decoded samples held for publishing while frames are waiting
-RECEIVE_MODES = ("auto", "direct", "threads")
 SOCKET_RCVBUF = 8 << 20              # bytes asked for each bus socket's kernel receive buffer
 SO_RCVBUFFORCE = 33                  # Linux; beyond net.core.rmem_max (needs CAP_NET_ADMIN)
 
@@ -267,11 +265,16 @@ class _Tagger(can.Listener):
 
 
 class GatewayService:
-    def __init__(self, robot, buses: Mapping[str, can.BusABC], session, *, fd: bool = False,
-                 health_period_s: float = 0.5, timing: SourceTiming = DEFAULT_TIMING, estimate: bool = True,
-                 model_robot=None, layout=None, record=None, publish_samples: bool = True,
-                 max_backlog: int = DEFAULT_MAX_BACKLOG, reopen: Callable[[str], can.BusABC] | None = None,
-                 retry_s: float = 0.5, receive: str = "auto", log_offset_ns: int = 0):
+    def __init__(self, robot, buses: Mapping[str, can.BusABC], session, config: GatewayConfig | None = None, *,
+                 model_robot=None, layout=None, record=None, reopen: Callable[[str], can.BusABC] | None = None,
+                 log_offset_ns: int = 0):
+        """``robot``, ``buses`` (opened), the zenoh ``session``: what the service runs on; ``config``:
+        how (gateway/config.py; it reads [can] fd and receive, [service], [drivers], [estimator]).
+        ``model_robot`` and ``layout``: the loaded model and thruster layout; ``record``: a Recorder;
+        ``reopen``: opens a failed bus again by name."""
+        config = config or GatewayConfig()
+        svc = config.service
+        fd, receive, estimate = config.can.fd, config.can.receive, svc.estimate
         if isinstance(robot, wire.WireMap):                # a wire map names a built-in robot
             import robot_description
 
@@ -280,12 +283,6 @@ class GatewayService:
         missing = set(wire_map.buses) - set(buses)
         if missing:
             raise GatewayError(f"no CAN bus given for {', '.join(sorted(missing))}")
-        if not (isinstance(max_backlog, int) and max_backlog >= 1):
-            raise GatewayError(f"max_backlog must be a positive number of frames, got {max_backlog!r}")
-        if not retry_s > 0:
-            raise GatewayError(f"retry_s must be > 0, got {retry_s!r}")
-        if receive not in RECEIVE_MODES:
-            raise GatewayError(f"receive must be one of {', '.join(RECEIVE_MODES)}, got {receive!r}")
         every_pollable = all(pollable(buses[name]) for name in wire_map.buses)
         if receive == "direct" and not every_pollable:
             raise GatewayError("receive='direct' needs buses with a pollable fileno() (SocketCAN, udp_multicast): "
@@ -295,19 +292,20 @@ class GatewayService:
         self.robot = wire_map.robot
         self.buses = dict(buses)
         self.session = session
+        self.config = config
         self.fd = fd
-        self.health_period_s = health_period_s
+        self.health_period_s = svc.health_period_s
         self.recorder = record
-        self.publish_samples = publish_samples
+        self.publish_samples = svc.publish_samples
         # the session engine: drivers + estimator, log times, raw frames to the recorder
         channels = {name: getattr(buses[name], "channel", None) for name in wire_map.buses}
         sinks = ([RecorderSink(record, channels=channels, rows=True)] if record is not None else []) + [_Publish(self)]
         # log_offset_ns: added to frame times to make log times (frames stamped with simulated time)
         self.engine = Session(robot, sinks, model_robot=model_robot, layout=layout, fd=fd, estimate=estimate,
-                              timing=timing, log_offset_ns=log_offset_ns)
-        self.max_backlog = max_backlog
-        self.resume_backlog = int(max_backlog * RESUME_FRACTION)
-        self.retry_s = float(retry_s)
+                              timing=config.drivers.timing(), settings=config.estimator, log_offset_ns=log_offset_ns)
+        self.max_backlog = svc.max_backlog
+        self.resume_backlog = int(svc.max_backlog * RESUME_FRACTION)
+        self.retry_s = float(svc.retry_s)
         self.reopen = reopen
         self.bus_state = {name: BusState(name) for name in self.wire.buses}
         self._bus_list = [self.bus_state[name] for name in self.wire.buses]     # by bus index

@@ -2,7 +2,7 @@
 
 Options (as zenoh's own examples take them)::
 
-    --config FILE.json5      a zenoh configuration file, read first
+    --zenoh-config FILE.json5   a zenoh configuration file, read first
     --mode peer|client|router
     --connect ENDPOINT       (repeatable) e.g. tcp/127.0.0.1:7447
     --listen ENDPOINT        (repeatable) e.g. tcp/127.0.0.1:7447
@@ -22,7 +22,8 @@ from typing import Sequence
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("zenoh")
-    g.add_argument("--config", metavar="FILE", type=Path, help="zenoh configuration file (JSON5)")
+    g.add_argument("--zenoh-config", metavar="FILE.json5", type=Path, default=None,
+                   help="zenoh configuration file (JSON5), e.g. deploy/zenoh/gateway.json5")
     g.add_argument("--mode", choices=("peer", "client", "router"), help="session mode (default: peer)")
     g.add_argument("--connect", metavar="ENDPOINT", action="append", default=[],
                    help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
@@ -55,7 +56,7 @@ def make_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_
 
 
 def config_from_args(args: argparse.Namespace):
-    return make_config(connect=args.connect, listen=args.listen, config_file=args.config, mode=args.mode,
+    return make_config(connect=args.connect, listen=args.listen, config_file=args.zenoh_config, mode=args.mode,
                        multicast_scouting=args.multicast_scouting)
 
 

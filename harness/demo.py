@@ -203,8 +203,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
                 raise RuntimeError("the demo's zenoh subscription never reached the gateway's session")
             layout = ThrusterLayout.from_config(scenario.cfg.thrusters)
             counting = {name: _CountingBus(bus, name, frames) for name, bus in tx.items()}
-            with GatewayService(robot, rx, gw_session, layout=layout, record=rec, publish_samples=True,
-                                log_offset_ns=wall0) as gw:
+            with GatewayService(robot, rx, gw_session, layout=layout, record=rec, log_offset_ns=wall0) as gw:
                 states = [(b, gw.bus_state[name]) for name, b in counting.items()]
                 marks = {name: 0 for name in counting}
 

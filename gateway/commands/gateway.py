@@ -14,46 +14,98 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from gateway.config import RECEIVE_MODES, GatewayConfig
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    can_g = parser.add_argument_group("CAN")
-    can_g.add_argument("--interface", "-i", required=True, help="python-can interface, e.g. socketcan, virtual")
-    can_g.add_argument("--channel", "-c", action="append", required=True, metavar="PREFIX|BUS=CHANNEL",
-                       help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
-    can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD (same frames, bit-rate switch)")
-    from drivers.canbus import add_bus_arguments
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE.toml",
+                        help="the gateway's configuration (every key and its default: deploy/gateway.toml, "
+                             "docs/configuration.md); the flags below override it")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the configuration this run would use (file + flags + defaults) as TOML, "
+                             "and exit")
+    from drivers.canbus import add_can_arguments
 
-    add_bus_arguments(can_g)
-    can_g.add_argument("--receive", choices=("auto", "direct", "threads"), default="auto",
+    can_g = parser.add_argument_group("CAN ([can] and [drivers])")
+    add_can_arguments(can_g, interface_help="python-can interface: socketcan, udp_multicast, pcan, kvaser, vector, "
+                                            "virtual, ... (here or in --config)")
+    can_g.add_argument("--receive", choices=RECEIVE_MODES, default=None,
                        help="how frames reach the worker: direct (it polls the buses' sockets; the auto choice "
                             "when every bus has one: socketcan, udp_multicast) or threads (one python-can "
                             "notifier thread per bus); see docs/latency.md")
-    can_g.add_argument("--source-rate", type=source_rate, default=1.0, metavar="RATE|lockstep",
+    can_g.add_argument("--source-rate", type=source_rate, default=None, metavar="RATE|lockstep",
                        help="device seconds per second of the frame timestamps: 1 (default) for real devices "
                             "and simulators in real time, 2 for a log played at --rate 2, 'lockstep' for a "
                             "simulation paced by its computation (a silence is then counted as a lower bound "
                             "unless the device stamps its samples; docs/faults.md)")
-    parser.add_argument("--robot", default=None, metavar="NAME|FILE", help="robot description (default paper_robot)")
-    parser.add_argument("--model", default=None, metavar="FILE.urdf",
-                        help="the gateway's model of the robot when it differs from --robot (default: --robot)")
-    parser.add_argument("--thrusters", default=None, metavar="NAME|FILE",
-                        help="nominal thruster layout: a name (default ring18, 100 N), a [[thruster]] file or a "
-                             "scenario .toml with a [thrusters] table (robot_description/thrusters.py)")
-    parser.add_argument("--record", type=Path, default=None, metavar="FILE.mcap", help="record the session")
-    parser.add_argument("--health-period", type=float, default=0.5, metavar="S", help="health publication period")
-    parser.add_argument("--no-samples", action="store_true",
-                        help="publish efforts and health only, not every decoded sample (about 15 %% less "
-                             "CPU at nominal rates; --record still records everything)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    rob = parser.add_argument_group("robot ([robot])")
+    rob.add_argument("--robot", default=None, metavar="NAME|FILE", help="robot description (default paper_robot)")
+    rob.add_argument("--model", default=None, metavar="FILE.urdf",
+                     help="the gateway's model of the robot when it differs from --robot (default: --robot)")
+    rob.add_argument("--thrusters", default=None, metavar="NAME|FILE",
+                     help="nominal thruster layout: a name (default ring18, 100 N), a [[thruster]] file or a "
+                          "scenario .toml with a [thrusters] table (robot_description/thrusters.py)")
+    svc = parser.add_argument_group("service ([service], [recording])")
+    svc.add_argument("--record", type=Path, default=None, metavar="FILE.mcap", help="record the session")
+    svc.add_argument("--health-period", type=float, default=None, metavar="S",
+                     help="health publication period (default 0.5 s)")
+    svc.add_argument("--no-samples", action="store_true",
+                     help="publish efforts and health only, not every decoded sample (about 15 %% less "
+                          "CPU at nominal rates; --record still records everything)")
+    svc.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     from gateway.zenoh_config import add_zenoh_arguments
 
     add_zenoh_arguments(parser)
 
 
-def source_rate(text: str) -> float | None:
-    """``--source-rate`` value: a positive number, or ``lockstep`` (unknown: None)."""
+def configuration(args: argparse.Namespace) -> GatewayConfig:
+    """The configuration of this run: ``--config`` (or the defaults), then every flag given over it."""
+    config = GatewayConfig.load(args.config) if args.config is not None else GatewayConfig()
+    can: dict = {}
+    if args.interface is not None:
+        can["interface"] = args.interface
+    if args.channel:
+        can["channels"] = tuple(args.channel)
+    if args.fd:
+        can["fd"] = True
+    if args.bitrate is not None:
+        can["bitrate"] = args.bitrate
+    if args.data_bitrate is not None:
+        can["data_bitrate"] = args.data_bitrate
+    if args.bus_kwarg:
+        can["bus_kwargs"] = tuple({**dict(config.can.bus_kwargs), **dict(args.bus_kwarg)}.items())
+    if args.receive is not None:
+        can["receive"] = args.receive
+    zen: dict = {}
+    if args.zenoh_config is not None:
+        zen["config_file"] = args.zenoh_config
+    if args.mode is not None:
+        zen["mode"] = args.mode
+    if args.connect:
+        zen["connect"] = tuple(args.connect)
+    if args.listen:
+        zen["listen"] = tuple(args.listen)
+    if args.multicast_scouting:
+        zen["multicast_scouting"] = True
+    robot = {k: v for k, v in (("description", args.robot), ("model", args.model), ("thrusters", args.thrusters))
+             if v is not None}
+    service: dict = {}
+    if args.health_period is not None:
+        service["health_period_s"] = args.health_period
+    if args.no_samples:
+        service["publish_samples"] = False
+    if args.duration is not None:
+        service["duration_s"] = args.duration
+    drivers = {} if args.source_rate is None else {"source_rate": None if args.source_rate == "lockstep"
+                                                   else args.source_rate}
+    recording = {} if args.record is None else {"path": args.record}
+    return config.updated(can=can, zenoh=zen, robot=robot, service=service, drivers=drivers, recording=recording)
+
+
+def source_rate(text: str) -> float | str:
+    """``--source-rate`` value: a positive number, or ``lockstep`` (the rate is unknown)."""
     if text.strip().lower() == "lockstep":
-        return None
+        return "lockstep"
     try:
         rate = float(text)
     except ValueError:
@@ -127,49 +179,54 @@ def run(args: argparse.Namespace) -> int:
     import zenoh
 
     import robot_description
-    from drivers.health import SourceTiming
+    from drivers.canbus import BusOptions, describe
     from drivers.wire import WireMap
     from gateway.bridge import GatewayService
-    from gateway.zenoh_config import config_from_args
-
+    from gateway.cli import UserError
+    from gateway.commands import stop_on_sigterm
+    from gateway.zenoh_config import make_config
     from robot_description.thrusters import ThrusterLayout
 
-    robot = robot_description.load(args.robot)
-    model = robot_description.load(args.model) if args.model else None
-    layout = ThrusterLayout.load(args.thrusters)
+    config = configuration(args)
+    if args.print_config:
+        print(config.to_toml(), end="")
+        return 0
+    cc = config.can
+    if cc.interface is None or not cc.channels:
+        raise UserError("the CAN buses: give --interface and --channel, or [can] interface and channels in --config")
+    robot = robot_description.load(config.robot.description)
+    model = robot_description.load(config.robot.model) if config.robot.model else None
+    layout = ThrusterLayout.load(config.robot.thrusters)
     wm = WireMap.from_robot(robot)
-    chans = channels(args.channel, list(wm.buses))
-    from gateway.commands import stop_on_sigterm
-
+    chans = channels(list(cc.channels), list(wm.buses))
+    options = BusOptions(cc.bitrate, cc.data_bitrate, cc.bus_kwargs)
     stop, _ = stop_on_sigterm()           # the process ends with the command
     with contextlib.ExitStack() as stack:
-        from drivers.canbus import BusOptions
-
-        buses = open_can(stack, args.interface, chans, list(wm.buses), fd=args.fd, options=BusOptions.from_args(args))
-        from gateway.commands.record import bus_rates
-
-        rates = bus_rates(args, chans)
-        session = stack.enter_context(zenoh.open(config_from_args(args)))
+        buses = open_can(stack, cc.interface, chans, list(wm.buses), fd=cc.fd, options=options)
+        rates = describe(options, cc.interface, chans.values(), fd=cc.fd)
+        z = config.zenoh
+        session = stack.enter_context(zenoh.open(make_config(connect=z.connect, listen=z.listen,
+                                                             config_file=z.config_file, mode=z.mode,
+                                                             multicast_scouting=z.multicast_scouting)))
         rec = None
-        if args.record is not None:
+        if config.recording.path is not None:
             from gateway.recorder import Recorder
             from gateway.replay import session_context
 
-            rec = stack.enter_context(Recorder(args.record))
+            rec = stack.enter_context(Recorder(config.recording.path))
             # the layout the filter starts from, so that a replay of this log starts from it too
-            rec.add_session_context(**session_context(robot, fd=args.fd,
-                                                      scenario_text=ThrusterLayout.scenario_text(args.thrusters),
-                                                      extra={"bus_rates": rates}))
-        timing = SourceTiming(rate=args.source_rate)
-        gw = stack.enter_context(GatewayService(robot, buses, session, fd=args.fd, health_period_s=args.health_period,
-                                                timing=timing,
-                                                model_robot=model, layout=layout, record=rec,
-                                                publish_samples=not args.no_samples, receive=args.receive))
+            rec.add_session_context(**session_context(robot, fd=cc.fd,
+                                                      scenario_text=ThrusterLayout.scenario_text(
+                                                          config.robot.thrusters),
+                                                      extra={"bus_rates": rates,
+                                                             "gateway_config": config.to_toml(docs=False)}))
+        gw = stack.enter_context(GatewayService(robot, buses, session, config, model_robot=model, layout=layout,
+                                                record=rec))
         freeze_heap()
         print(f"bsc gateway: robot {wm.robot}, buses " + ", ".join(f"{b}={c}" for b, c in chans.items())
               + f" (receive: {gw.receive})" + (f"; {rates}" if rates else ""), flush=True)
         try:
-            gw.run(stop, args.duration)
+            gw.run(stop, config.service.duration_s)
         except KeyboardInterrupt:
             pass
         st = gw.stats

@@ -45,16 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start a new file every S seconds")
     parser.add_argument("--scenario", default=None, metavar="FILE.toml",
                         help="attach the scenario file the session runs")
-    can_g = parser.add_argument_group("CAN")
-    can_g.add_argument("--interface", "-i", default=None,
-                       help="python-can interface (socketcan, virtual, ...); no CAN without it")
-    can_g.add_argument("--channel", "-c", action="append", default=[],
-                       metavar="PREFIX|BUS=CHANNEL",
-                       help="channel prefix, or BUS=CHANNEL for each bus (repeatable)")
-    can_g.add_argument("--fd", action="store_true", help="the buses run CAN FD")
-    from drivers.canbus import add_bus_arguments
+    from drivers.canbus import add_can_arguments
 
-    add_bus_arguments(can_g)
+    add_can_arguments(parser.add_argument_group("CAN"),
+                      interface_help="python-can interface (socketcan, virtual, ...); no CAN without it")
     parser.add_argument("--zenoh", dest="keyexpr", default=None, metavar="KEYEXPR",
                         help="zenoh key expression to record (default bsc/<robot>/**)")
     parser.add_argument("--no-zenoh", action="store_true", help="record CAN only")

@@ -32,16 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="live CAN: python-can interface (socketcan, virtual, ...)")
     mode.add_argument("--zenoh", action="store_true",
                       help="live zenoh: republish the recorded samples and efforts")
-    can_g = parser.add_argument_group("CAN")
-    can_g.add_argument("--channel", "-c", action="append", default=[],
-                       metavar="PREFIX|BUS=CHANNEL",
-                       help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL per bus to play "
-                            "(repeatable; buses not named are not played)")
-    can_g.add_argument("--fd", action="store_true",
-                       help="CAN FD buses (default: as the log says)")
-    from drivers.canbus import add_bus_arguments
+    from drivers.canbus import add_can_arguments
 
-    add_bus_arguments(can_g)
+    add_can_arguments(parser.add_argument_group("CAN"), interface_help=None,
+                      channel_help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL per bus to play "
+                                   "(repeatable; buses not named are not played)",
+                      fd_help="CAN FD buses (default: as the log says)")
     sel = parser.add_argument_group("selection and timing")
     sel.add_argument("--rate", "-r", type=float, default=1.0, metavar="R",
                      help="playback speed factor (default 1; 0 = as fast as possible)")

@@ -43,7 +43,7 @@ from robot_description.thrusters import ThrusterLayout
 
 from . import chain_kernel as ck
 from . import thruster_kernel as tk
-from .model import EstimatorModel
+from .model import EstimatorModel, EstimatorSettingsError
 from .thrusters import ThrusterFilterSettings
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
@@ -81,6 +81,12 @@ class CoreSettings:
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
     pending_capacity: int = 1 << 14    # slower-stream samples waiting for an epoch (oldest dropped beyond)
     held_capacity: int = 1 << 14       # samples held while the grid's phase is learnt
+
+    def __post_init__(self) -> None:
+        for name in ("max_open", "imu_max_age_periods", "pending_capacity", "held_capacity"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise EstimatorSettingsError(f"{name} must be a whole number >= 1, got {value!r}")
 
 
 def flag_names(robot: Robot) -> list[str]:

@@ -34,6 +34,10 @@ class EstimatorModelError(EstimatorError, ValueError):
     """The robot cannot be turned into an estimator model (unsupported joint, bad geometry)."""
 
 
+class EstimatorSettingsError(EstimatorError, ValueError):
+    """A setting of the estimator out of its range (a count below 1, a noise figure not > 0)."""
+
+
 def skew(r: np.ndarray) -> np.ndarray:
     """S(r), the cross-product matrix: ``skew(r) @ f == np.cross(r, f)``."""
     return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])

@@ -36,6 +36,7 @@ this one is its reference form in the tests.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -43,7 +44,7 @@ import numpy as np
 
 from robot_description.thrusters import ThrusterLayout
 
-from .model import EstimatorModel, skew
+from .model import EstimatorModel, EstimatorSettingsError, skew
 from .model import solve as _solve
 
 
@@ -61,6 +62,11 @@ class ThrusterFilterSettings:
     walk_moment_nm: float = 0.6        # random walk of each thruster's moment, N m per sqrt(s)
     bias_force_sigma_n: float = 5.0    # prior of the bias states (sensor biases seen as force / moment)
     bias_moment_sigma_nm: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise EstimatorSettingsError(f"{name} must be a number > 0, got {value!r}")
 
 
 class ThrusterFilter:

@@ -47,15 +47,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s_g.add_argument("--workers", type=int, metavar="N", help="worker processes (default: CPU count)")
     s_g.add_argument("--overwrite", action="store_true", help="replace an existing series in --out")
     can_g = p.add_argument_group("CAN (the sensor firmware; without --interface nothing is sent)")
-    can_g.add_argument("--interface", "-i", metavar="NAME",
-                       help="python-can interface: virtual, udp_multicast, socketcan, ...")
-    can_g.add_argument("--channel", "-c", action="append", metavar="PREFIX|BUS=CHANNEL",
-                       help="channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable; "
-                            "default prefix bsc)")
-    can_g.add_argument("--fd", action="store_true", help="send CAN FD frames (same payloads, bit-rate switch)")
-    from drivers.canbus import add_bus_arguments
+    from drivers.canbus import CHANNEL_HELP, add_can_arguments
 
-    add_bus_arguments(can_g)
+    add_can_arguments(can_g, interface_help="python-can interface: virtual, udp_multicast, socketcan, ...",
+                      channel_help=CHANNEL_HELP[:-1] + "; default prefix bsc)",
+                      fd_help="send CAN FD frames (same payloads, bit-rate switch)")
     can_g.add_argument("--realtime", action="store_true",
                        help="pace each 1 ms step to the wall clock and stamp frames at send "
                             "(default: lockstep, as fast as possible, simulated-time stamps)")

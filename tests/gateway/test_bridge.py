@@ -21,6 +21,7 @@ from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, Wre
 from gateway.efforts import JointEfforts
 from gateway import codec, keys
 from gateway.bridge import GatewayService
+from gateway.config import GatewayConfig
 from gateway.zenoh_config import make_config
 from support import free_port, subscribed
 
@@ -70,7 +71,7 @@ def test_bridge_publishes_samples_and_health(sessions):
         tx = {name: can.Bus(interface="virtual", channel=wire.channel_name(prefix, name),
                             receive_own_messages=False, ignore_config=True) for name in wm.buses}
         try:
-            with GatewayService(wm, opened, pub_s, health_period_s=0.05) as gw:
+            with GatewayService(wm, opened, pub_s, GatewayConfig().updated(service={"health_period_s": 0.05})) as gw:
                 stop = threading.Event()
                 runner = threading.Thread(target=gw.run, args=(stop,))
                 runner.start()
@@ -158,7 +159,7 @@ def arm0_ft_then_close(sessions, keyexpr: str, want, *, before_close=None, **ser
                  ignore_config=True)
     try:
         subscribed(pub_s, keyexpr)
-        gw = GatewayService(robot, buses, pub_s, **service_kw).start()
+        gw = GatewayService(robot, buses, pub_s, GatewayConfig().updated(service=service_kw)).start()
         sent = 0
         for c in range(3):
             for m in frames.encode_wrench(WrenchSample("arm0", 0, c, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3))):

@@ -14,6 +14,7 @@ from drivers import wire
 from drivers.samples import BusHealth, WrenchSample
 from gateway import keys
 from gateway.bridge import GatewayError, GatewayService
+from gateway.config import GatewayConfig
 from gateway.efforts import JointEfforts, ThrusterEffort
 from simulator import firmware, scenario
 from simulator.engine import DT_S, Simulation
@@ -112,11 +113,18 @@ def test_direct_mode_samples_go_out_without_an_estimator(sessions, rig):  # noqa
     sub = sub_s.declare_subscriber(keys.sensors(rig.robot.name), col)
     try:
         subscribed(pub_s, keys.sensors(rig.robot.name))
-        with GatewayService(rig.robot, rig.rx, pub_s, estimate=False):
+        with GatewayService(rig.robot, rig.rx, pub_s, GatewayConfig().updated(service={"estimate": False})):
             rig.steps(20)
             assert col.done.wait(WAIT_S), len(col.got)
     finally:
         sub.undeclare()
+
+
+QUICK_RETRY = GatewayConfig().updated(service={"retry_s": 0.05})
+
+
+def receive(mode: str) -> GatewayConfig:
+    return GatewayConfig().updated(can={"receive": mode})
 
 
 def test_receive_modes_are_checked(sessions, rig):  # noqa: F811
@@ -126,11 +134,11 @@ def test_receive_modes_are_checked(sessions, rig):  # noqa: F811
                for n in rig.rx}
     try:
         with pytest.raises(GatewayError, match="pollable"):
-            GatewayService(rig.robot, virtual, pub_s, receive="direct")
+            GatewayService(rig.robot, virtual, pub_s, receive("direct"))
         with pytest.raises(GatewayError, match="receive must be"):
-            GatewayService(rig.robot, rig.rx, pub_s, receive="fast")
+            GatewayService(rig.robot, rig.rx, pub_s, receive("fast"))
         assert GatewayService(rig.robot, virtual, pub_s).receive == "threads"
-        gw = GatewayService(rig.robot, rig.rx, pub_s, receive="threads").start()
+        gw = GatewayService(rig.robot, rig.rx, pub_s, receive("threads")).start()
         try:
             rig.steps(5)
             wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "threads mode over pollable buses")
@@ -143,7 +151,7 @@ def test_receive_modes_are_checked(sessions, rig):  # noqa: F811
 
 def test_direct_mode_a_failing_bus_is_counted_and_the_others_continue(sessions, rig):  # noqa: F811
     pub_s, _ = sessions
-    with GatewayService(rig.robot, rig.rx, pub_s, retry_s=0.05) as gw:
+    with GatewayService(rig.robot, rig.rx, pub_s, QUICK_RETRY) as gw:
         rig.steps(20)
         wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "before the failure")
         rig.rx["arm1"].failing = True
@@ -177,7 +185,7 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
             return spare[name][0]
 
     try:
-        with GatewayService(rig.robot, rig.rx, pub_s, reopen=reopen, retry_s=0.05) as gw:
+        with GatewayService(rig.robot, rig.rx, pub_s, QUICK_RETRY, reopen=reopen) as gw:
             rig.steps(20)
             wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "before")
             rig.rx["arm0"].break_socket()             # the adapter went away
@@ -199,7 +207,7 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
 
 def test_direct_mode_overflow_is_counted_frame_by_frame(sessions, rig):  # noqa: F811
     pub_s, _ = sessions
-    gw = GatewayService(rig.robot, rig.rx, pub_s, max_backlog=40)
+    gw = GatewayService(rig.robot, rig.rx, pub_s, GatewayConfig().updated(service={"max_backlog": 40}))
     feed = gw.engine.feed_frames
 
     def slow_feed(rows, log_ns=None):             # a worker far slower than the buses

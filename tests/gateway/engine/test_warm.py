@@ -49,6 +49,9 @@ from can.interfaces.udp_multicast.utils import pack_message
 from drivers import wire
 from drivers.receive import BusReader
 from gateway import bridge
+from gateway.config import GatewayConfig
+
+DIRECT = GatewayConfig().updated(can={"receive": "direct"})
 from gateway.recorder import Recorder
 from gateway.zenoh_config import make_config
 from simulator import firmware, scenario
@@ -88,7 +91,7 @@ with tempfile.TemporaryDirectory() as tmp:
             rx.setsockopt(socket.SOL_SOCKET, 35, 1)          # SO_TIMESTAMPNS, as python-can sets it
             buses[n] = WireBus(rx, n, kind)
         with zenoh.open(make_config(listen=[sys.argv[1]])) as z, Recorder(Path(tmp) / f"{kind}.mcap") as rec, \
-                bridge.GatewayService(sim.robot, buses, z, record=rec, receive="direct") as gw:
+                bridge.GatewayService(sim.robot, buses, z, DIRECT, record=rec) as gw:
             sent, t0 = 0, time.monotonic()
             for k in range(sim.n_steps):
                 r = sim.step()

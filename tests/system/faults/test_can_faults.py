@@ -46,6 +46,7 @@ from drivers import wire
 from drivers.samples import BusHealth, DeviceHealth
 from gateway import codec, keys
 from gateway.bridge import GatewayService
+from gateway.config import GatewayConfig
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.zenoh_config import make_config
 from robot_description.thrusters import ThrusterLayout
@@ -326,8 +327,8 @@ class Lockstep:
                     self.rx[bus] = FlakyBus(rx[bus])
                     self.available[bus] = False   # it comes back by itself: reopening it always fails
             try:
-                with GatewayService(robot, self.rx, gw_session, layout=self.layout, reopen=self.reopen,
-                                    retry_s=0.05) as gw:
+                with GatewayService(robot, self.rx, gw_session, GatewayConfig().updated(service={"retry_s": 0.05}),
+                                    layout=self.layout, reopen=self.reopen) as gw:
                     self.gw = gw
                     self.trace = firmware.run_on_buses(self.sim, tx, firmware=self.fw, on_step=self.on_step)
                     self.settle()

@@ -33,7 +33,8 @@ import zenoh
 
 from drivers.samples import BusHealth
 from gateway import codec, keys
-from gateway.bridge import DEFAULT_MAX_BACKLOG, GatewayService
+from gateway.bridge import GatewayService
+from gateway.config import DEFAULT_MAX_BACKLOG
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.zenoh_config import make_config
 from robot_description.thrusters import ThrusterLayout
@@ -188,7 +189,7 @@ def test_ten_times_the_nominal_rate_every_frame_counted_memory_bounded(block):
                 rss0 = vm_rss_mb()
                 sampler.start()
                 t0 = time.monotonic()
-                with GatewayService(robot, floods, gw_s, layout=layout, health_period_s=0.5) as gw:
+                with GatewayService(robot, floods, gw_s, layout=layout) as gw:
                     sampler.gw = gw
                     stop = threading.Event()
                     ticker = threading.Thread(target=gw.run, args=(stop,), name="bsc-test-health")
