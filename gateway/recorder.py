@@ -35,7 +35,6 @@ import enum
 import json
 import os
 import socket
-import struct
 import sys
 import threading
 import time
@@ -948,7 +947,8 @@ class Recorder:
     def _flush_chunk(self) -> None:
         if self._pending_msgs == 0:
             return
-        self._writer.flush()              # finishes the chunk and writes it + its indexes
+        self._writer.end_chunk()          # writes the chunk and its indexes
+        self._stream.flush()
         self._flushed += self._pending_msgs
         self._chunks += 1
         self._pending_msgs = 0
@@ -976,18 +976,18 @@ class Recorder:
             self._fail(exc)
 
     def _open_file(self) -> None:
-        from mcap.writer import Writer
+        from gateway.mcapwriter import McapWriter
 
         path = (self._base.with_name(f"{self._base.stem}_{len(self._paths):04d}"
                                      f"{self._base.suffix}") if self._rotating else self._base)
         stream = _FdStream(path, self._overwrite, self._fsync)
         self._paths.append(path)
         self._stream = stream
-        # chunk_size is effectively infinite for the library: this class decides when a chunk
-        # ends, so it knows exactly which messages are on disk (stats.flushed).
-        writer = Writer(stream, chunk_size=1 << 62, compression=self._compression)
+        # this class decides when a chunk ends, so it knows exactly which messages are on disk
+        # (stats.flushed)
+        writer = McapWriter(stream, compression=self._compression)
         self._writer = writer
-        self._add_message = _fast_add_message(writer) or writer.add_message
+        self._add_message = writer.add_message
         self._file_started = time.monotonic()
         self._pending_msgs = self._pending_bytes = 0
         writer.start(profile="", library=f"bsc-recorder ({_library_id()})")
@@ -1052,58 +1052,6 @@ class Recorder:
                 pass                      # the first error is the one worth reporting
             self._stream = None
         self._writer = None
-
-
-_MESSAGE_HEAD = struct.Struct("<BQHIQQ")     # opcode, record length, channel, sequence, log/publish time
-
-
-def _fast_add_message(writer):
-    """``Writer.add_message`` of mcap 1.x without building a ``Message`` record object per call:
-    the same statistics, chunk message index and record bytes (one ``struct.pack``). Only for a
-    chunked writer whose chunks this recorder ends (``chunk_size`` 2**62, so ``add_message``
-    never finalises a chunk itself); ``None`` when the library's internals are not the expected
-    ones (then the caller uses ``writer.add_message``)."""
-    try:
-        from mcap.opcode import Opcode
-        from mcap.records import MessageIndex
-
-        cb = writer._Writer__chunk_builder
-        st = writer._Writer__statistics
-        rw = cb.record_writer
-        buf = rw._buffer                      # replaced by a new BytesIO after every chunk
-        if (writer._Writer__chunk_size < 1 << 62 or not isinstance(cb.message_indices, dict)
-                or not hasattr(buf, "tell") or not isinstance(st.channel_message_counts, dict)
-                or not all(hasattr(cb, a) for a in ("num_messages", "message_start_time", "message_end_time"))
-                or not all(hasattr(st, a) for a in ("message_count", "message_start_time", "message_end_time"))):
-            return None
-    except (AttributeError, ImportError):
-        return None
-    pack = _MESSAGE_HEAD.pack
-    indices, counts = cb.message_indices, st.channel_message_counts
-    op = int(Opcode.MESSAGE)
-
-    def add_message(channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
-        if st.message_count == 0:
-            st.message_start_time = log_time
-        else:
-            st.message_start_time = min(log_time, st.message_start_time)
-        st.message_end_time = max(log_time, st.message_end_time)
-        counts[channel_id] += 1
-        st.message_count += 1
-        if cb.num_messages == 0:
-            cb.message_start_time = log_time
-        else:
-            cb.message_start_time = min(cb.message_start_time, log_time)
-        cb.message_end_time = max(cb.message_end_time, log_time)
-        index = indices.get(channel_id)
-        if not index:
-            index = indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
-        buf = rw._buffer
-        index.records.append((log_time, buf.tell()))
-        cb.num_messages += 1
-        buf.write(pack(op, 22 + len(data), channel_id, sequence, log_time, publish_time))
-        buf.write(data)
-    return add_message
 
 
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}

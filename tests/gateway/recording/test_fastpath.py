@@ -49,45 +49,6 @@ def _content(path):
     return [(t, s, m.log_time, bytes(m.data)) for t, s, m in rp.iter_file_order(path)]
 
 
-def test_direct_message_append_writes_what_the_library_writes(tmp_path, monkeypatch):
-    rnd = random.Random(2)
-    items = list(_samples(rnd, 4000))
-    frames = [can.Message(arbitration_id=0x200 + k % 3, data=bytes(rnd.getrandbits(8) for _ in range(8)),
-                          timestamp=1.0 + k * 1e-3) for k in range(3000)]
-
-    def write(path):
-        with rc.Recorder(path, chunk_size=16 * 1024, queue_size=1 << 20) as rec:
-            for k, s in enumerate(items):
-                rec.record(f"/t/{type(s).__name__}", s, log_time_ns=10_000 + (k * 7919) % 5000)
-                if k < len(frames):
-                    rec.record_can("arm0", frames[k])
-        return rec.stats
-
-    fast = write(tmp_path / "fast.mcap")
-    monkeypatch.setattr(rc, "_fast_add_message", lambda writer: None)
-    slow = write(tmp_path / "lib.mcap")
-    assert (fast.written, fast.chunks, fast.dropped) == (slow.written, slow.chunks, 0)
-    assert _content(tmp_path / "fast.mcap") == _content(tmp_path / "lib.mcap")
-    a, b = (mcaplog.inspect(tmp_path / n) for n in ("fast.mcap", "lib.mcap"))
-    assert a.complete and b.complete
-    assert [(c.topic, c.count, c.first_ns, c.last_ns) for c in a.channels] == \
-           [(c.topic, c.count, c.first_ns, c.last_ns) for c in b.channels]
-    from mcap.reader import make_reader
-
-    summaries = []
-    for name in ("fast.mcap", "lib.mcap"):
-        with open(tmp_path / name, "rb") as f:
-            reader = make_reader(f)
-            s = reader.get_summary()
-            summaries.append((s.statistics.message_count, s.statistics.message_start_time,
-                              s.statistics.message_end_time, dict(s.statistics.channel_message_counts),
-                              [(c.message_start_time, c.message_end_time, c.uncompressed_size)
-                               for c in s.chunk_indexes],
-                              [(m.channel_id, m.log_time, m.data)
-                               for _, _, m in reader.iter_messages(log_time_order=True)]))
-    assert summaries[0] == summaries[1]
-
-
 def test_record_walker_reads_what_a_full_scan_reads(tmp_path):
     path = tmp_path / "s.mcap"
     rnd = random.Random(3)

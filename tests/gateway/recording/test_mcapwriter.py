@@ -1,0 +1,84 @@
+"""The recorder's MCAP writer (gateway/mcapwriter.py) writes what mcap's own Writer writes."""
+from __future__ import annotations
+
+import io
+import random
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from gateway import mcaplog
+from gateway.mcapwriter import McapWriter
+
+
+def _calls(rnd: random.Random):
+    """A recording's calls: metadata, attachments, schemas and channels (some registered late),
+    messages out of time order, chunks ended at random points, an empty chunk end."""
+    calls = [("add_metadata", "bsc.recording", {"a": "1", "b": "x"}),
+             ("add_attachment", 5, 5, "robot.urdf", "application/xml", b"<robot/>" * 50),
+             ("register_schema", "S1", "jsonschema", b'{"type":"object"}'),
+             ("register_channel", "/a", "json", 1, {"k": "v"}),
+             ("register_channel", "/b", "json", 1, {})]
+    channels = 2
+    for k in range(3000):
+        r = rnd.random()
+        if r < 0.002:
+            calls.append(("register_schema", f"S{k}", "jsonschema", b'{"type":"object","title":"%d"}' % k))
+        elif r < 0.004:
+            calls.append(("register_channel", f"/c{k}", "json", 1, {}))
+            channels += 1
+        elif r < 0.012:
+            calls.append(("flush",))
+        elif r < 0.013:
+            calls.append(("add_metadata", f"m{k}", {"k": str(k)}))
+        else:
+            data = bytes(rnd.getrandbits(8) for _ in range(rnd.randint(0, 90)))
+            calls.append(("add_message", rnd.randint(1, channels), 1_000_000 + rnd.randint(-5000, 5000) + 1000 * k,
+                          data, 7 * k, k & 0xFFFFFFFF))
+    calls += [("flush",), ("flush",)]
+    return calls
+
+
+def _play(writer, calls, ours: bool) -> None:
+    writer.start(profile="", library="bsc-test")
+    for name, *args in calls:
+        if name == "flush":
+            writer.end_chunk() if ours else writer.flush()
+        elif name == "add_message":
+            cid, log, data, pub, seq = args
+            writer.add_message(cid, log, data, pub, seq)
+        else:
+            getattr(writer, name)(*args)
+    writer.finish()
+
+
+@pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.NONE])
+@pytest.mark.parametrize("seed", [1, 2])
+def test_byte_for_byte_what_the_library_writes(compression, seed):
+    calls = _calls(random.Random(seed))
+    lib, ours = io.BytesIO(), io.BytesIO()
+    _play(Writer(lib, chunk_size=1 << 62, compression=compression), calls, ours=False)
+    _play(McapWriter(ours, compression=compression), calls, ours=True)
+    assert ours.getvalue() == lib.getvalue()
+    ours.seek(0)
+    reader = make_reader(ours)
+    summary = reader.get_summary()
+    n = sum(1 for c in calls if c[0] == "add_message")
+    assert summary.statistics.message_count == n == sum(1 for _ in reader.iter_messages())
+    assert summary.statistics.chunk_count == len(summary.chunk_indexes) > 10
+
+
+def test_a_recorder_file_is_complete_and_reads_back(tmp_path):
+    from gateway.recorder import Recorder
+
+    path = tmp_path / "s.mcap"
+    with Recorder(path, chunk_size=4096) as rec:
+        for k in range(5000):
+            rec.record("/t", {"t_ns": k, "v": k * 0.25}, log_time_ns=1_000 + k)
+    info = mcaplog.inspect(path)
+    assert info.complete and rec.stats.written == 5000 and rec.stats.chunks > 10
+    with open(path, "rb") as f:
+        got = [(m.log_time, m.data) for _, _, m in make_reader(f).iter_messages(topics=["/t"])]
+    assert [t for t, _ in got] == list(range(1_000, 6_000))
+    assert got[7][1] == b'{"t_ns":7,"v":1.75}'
