@@ -110,6 +110,50 @@ class Robot:
         return pin.neutral(self.model)
 
 
+@dataclass(frozen=True, slots=True)
+class UrdfJoint:
+    """One ``<joint>`` as the URDF states it: the child link's frame in the parent link's frame
+    is ``origin`` (``xyz`` m, then ``rpy`` rad: fixed-axis roll, pitch, yaw), then a turn of the
+    joint angle about ``axis`` (unit, child frame) for a revolute or continuous joint.
+
+    What a viewer's frame tree is made of (link to link), where Pinocchio's model merges the
+    links that fixed joints hold together."""
+
+    name: str
+    kind: str                            # revolute, continuous, fixed, ...
+    parent: str
+    child: str
+    xyz: tuple[float, float, float]
+    rpy: tuple[float, float, float]
+    axis: tuple[float, float, float]
+
+
+def urdf_joints(text: str) -> tuple[UrdfJoint, ...]:
+    """Every joint of a URDF, in document order (URDF defaults: zero origin, axis x).
+    Raises :class:`DescriptionError` for text that is not XML or a joint without its links or
+    with an origin or axis that is not 3 finite numbers (:func:`from_urdf_text` checks the rest)."""
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise DescriptionError(f"cannot parse URDF: {exc}") from exc
+    out = []
+    for j in root.findall("joint"):
+        name = j.get("name") or "?"
+        parent, child = j.find("parent"), j.find("child")
+        if parent is None or child is None or not parent.get("link") or not child.get("link"):
+            raise DescriptionError(f"joint {name!r}: needs <parent link=...> and <child link=...>")
+        origin, axis_el = j.find("origin"), j.find("axis")
+        xyz = _numbers(origin.get("xyz", "0 0 0") if origin is not None else "0 0 0", 3)
+        rpy = _numbers(origin.get("rpy", "0 0 0") if origin is not None else "0 0 0", 3)
+        axis = _numbers(axis_el.get("xyz") if axis_el is not None else "1 0 0", 3)
+        norm = math.hypot(*axis) if axis is not None else 0.0
+        if xyz is None or rpy is None or not norm > 1e-12:
+            raise DescriptionError(f"joint {name!r}: origin and axis must be 3 finite numbers (a non-zero axis)")
+        out.append(UrdfJoint(name, j.get("type") or "fixed", parent.get("link"), child.get("link"),
+                             tuple(xyz), tuple(rpy), tuple(a / norm for a in axis)))
+    return tuple(out)
+
+
 def resolve(robot: str | Path | None) -> Path:
     """A built-in robot name (``paper_robot``, ``three_arm``) or a path to a URDF file."""
     if robot is None:

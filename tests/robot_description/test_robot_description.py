@@ -35,7 +35,7 @@ def test_shipped_urdfs_are_the_generators_output():
 
 
 @pytest.mark.parametrize("edit, match", [
-    (lambda t: t.replace('<link name="imu"/>', '<link name="imu_x"/>')
+    (lambda t: t.replace('<link name="imu">', '<link name="imu_x">')
      .replace('<child link="imu"/>', '<child link="imu_x"/>'), "no 'imu' link"),
     (lambda t: t.replace("arm0_ee", "arm0_tool"), "arm0_ee"),
     (lambda t: t.replace('<origin xyz="0 0 0" rpy="0 0 0"/>\n      <mass value="2400"/>',
@@ -132,3 +132,46 @@ def test_a_thin_rod_on_the_triangle_bound_is_accepted():
 def test_messages_name_the_file_given():
     with pytest.raises(rd.PhysicalValueError, match=r"in paper_robot\.urdf:"):
         rd.from_urdf_text(urdf_text(PAPER).replace('<mass value="100"/>', '<mass value="-3"/>', 1), name="paper_robot")
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_every_link_has_visual_geometry_and_the_dynamics_ignore_it(name):
+    """Foxglove's 3D panel (and RViz) draw a link from its <visual>; the inertias come from
+    <inertial> alone: the model without any <visual> is the same model."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    text = urdf_text(SPECS[name])
+    links = ET.fromstring(text).findall("link")
+    assert links and all(link.find("visual/geometry") is not None for link in links)
+    bare = rd.from_urdf_text(re.sub(r"\s*<visual>.*?</visual>", "", text, flags=re.S))
+    assert "<visual>" in text and "<visual>" not in bare.urdf
+    full = rd.from_urdf_text(text)
+    assert full.model.nq == bare.model.nq and full.model.nframes == bare.model.nframes
+    for a, b in zip(full.model.inertias, bare.model.inertias):
+        assert np.array_equal(a.toDynamicParameters(), b.toDynamicParameters())
+
+
+def test_urdf_joints_are_the_link_to_link_transforms():
+    """At q = 0 each URDF joint's origin is the child link's placement in the parent link's, as
+    Pinocchio's frames give it."""
+    import pinocchio as pin
+
+    r = rd.load("three_arm")
+    data = r.data()
+    pin.framesForwardKinematics(r.model, data, r.neutral())
+    joints = rd.urdf_joints(r.urdf)
+    assert {j.kind for j in joints} == {"fixed", "revolute"} and len(joints) == len(_links(r.urdf)) - 1
+    for j in joints:
+        M = data.oMf[r.model.getFrameId(j.parent, pin.FrameType.BODY)].actInv(
+            data.oMf[r.model.getFrameId(j.child, pin.FrameType.BODY)])
+        assert np.allclose(M.translation, j.xyz, atol=1e-9)
+        assert np.allclose(M.rotation, pin.rpy.rpyToMatrix(*j.rpy), atol=1e-9)
+    with pytest.raises(rd.DescriptionError, match="origin and axis"):
+        rd.urdf_joints(r.urdf.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>', 1))
+
+
+def _links(text):
+    import xml.etree.ElementTree as ET
+
+    return ET.fromstring(text).findall("link")
