@@ -79,6 +79,12 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+# a library error's ``option`` (gateway.errors) -> the flag that sets it, on the commands that have it
+OPTION_FLAGS = {"robot": "--robot", "start": "--start", "duration": "--duration", "rate": "--rate",
+                "can_ids": "--can-id", "channels": "--channel", "topics": "--topic", "check": "--check",
+                "bus_map": "--bus"}
+
+
 def _load(module: str):
     return importlib.import_module(module if "." in module else f"gateway.commands.{module}")
 
@@ -97,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         if is_project_error(exc) or isinstance(exc, OSError):
-            print(f"bsc {args.command}: error: {exc}", file=sys.stderr)
+            hint = " (--force replaces it)" if isinstance(exc, FileExistsError) and "force" in args else ""
+            flag = OPTION_FLAGS.get(getattr(exc, "option", None) or "")
+            if flag and flag.lstrip("-").replace("-", "_") in args:
+                hint += f" [{flag}]"          # the library names the parameter; the command, its flag
+            print(f"bsc {args.command}: error: {exc}{hint}", file=sys.stderr)
             return EXIT_USAGE
         # anything else is a bug, not a bad input: say so
         print(f"bsc {args.command}: internal error: {type(exc).__name__}: {exc} (a bug in bsc: "

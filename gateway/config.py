@@ -148,8 +148,8 @@ class GatewayConfig:
         """The configuration in the TOML file ``path`` (what it does not give: the defaults)."""
         path = Path(path)
         if path.suffix.lower() in (".json5", ".json"):
-            raise ConfigError(f"{path}: a zenoh configuration? give it as --zenoh-config, or as "
-                              f"[zenoh] config_file in the gateway's TOML")
+            raise ConfigError(f"{path}: a zenoh configuration (JSON5), not the gateway's (TOML): it goes "
+                              f"in [zenoh] config_file")
         try:
             table = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:

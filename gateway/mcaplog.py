@@ -519,7 +519,7 @@ def recover(source: str | os.PathLike[str], output: str | os.PathLike[str] | Non
     if output.exists() and output.resolve() == source.resolve():
         raise McapFileError(f"{output}: output would overwrite the file being recovered")
     if output.exists() and not overwrite:
-        raise FileExistsError(f"{output} exists (use --force to replace it)")
+        raise FileExistsError(f"{output} exists")
     header = scan_header(source)
     tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
     schema_ids: dict[int, int] = {}

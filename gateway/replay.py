@@ -115,9 +115,9 @@ class LogContext:
     def window(self, start_s: float | None, duration_s: float | None) -> tuple[int | None, int | None]:
         """``[start_ns, end_ns)`` from offsets relative to the log's first message."""
         if start_s is not None and start_s < 0:
-            raise ReplayError(f"--start {start_s}: must be >= 0")
+            raise ReplayError(f"start {start_s} s: must be >= 0", option="start")
         if duration_s is not None and duration_s <= 0:
-            raise ReplayError(f"--duration {duration_s}: must be positive")
+            raise ReplayError(f"duration {duration_s} s: must be positive", option="duration")
         if self.start_ns is None:
             return None, None
         start = self.start_ns + round((start_s or 0.0) * 1e9) if start_s is not None else None
@@ -484,7 +484,8 @@ def resolve_robot(ctx: LogContext, robot: str | None = None):
     if name:
         return robot_description.load(name)
     raise ReplayError(f"{ctx.path}: the log names no robot (no {URDF_ATTACHMENT} attachment, "
-                      f"no robot in {SESSION_METADATA}); pass --robot NAME|FILE")
+                      f"no robot in {SESSION_METADATA}): name the robot (a built-in name or a URDF file)",
+                      option="robot")
 
 
 def key_scheme(wire_map) -> dict[str, str]:
@@ -714,8 +715,9 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     ``duration_s`` a window relative to the log's first message.
     """
     if check and any(x is not None for x in (robot, model, start_s, duration_s, can_ids, topics)):
-        raise ReplayError("--check compares with the efforts the log recorded: replay the whole log with its own "
-                          "robot (no --robot, --model, --start, --duration, --can-id or --topic)")
+        raise ReplayError("a check compares with the efforts the log recorded: replay the whole log with its "
+                          "own robot (no other robot or model, no time window, no CAN id or topic selection)",
+                          option="check")
     from drivers.samples import BusHealth, DeviceHealth
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
@@ -736,8 +738,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
         pick = _topic_pred(topics)
         buses = [b for b in ctx.buses if pick(CAN_TOPIC_PREFIX + b)]
         if not buses:
-            raise ReplayError(f"{path}: --topic selects none of the raw CAN channels "
-                              f"({', '.join(CAN_TOPIC_PREFIX + b for b in ctx.buses)})")
+            raise ReplayError(f"{path}: the topics selected are none of the raw CAN channels "
+                              f"({', '.join(CAN_TOPIC_PREFIX + b for b in ctx.buses)})", option="topics")
         rob = resolve_robot(ctx, robot)
         model_robot = robot_description.load(model) if model is not None else None
         use_fd = ctx.fd if fd is None else fd
@@ -747,7 +749,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
         report_path = out_dir / REPORT_NAME
         for p in (out_path, report_path):
             if p.exists() and not overwrite:
-                raise FileExistsError(f"{p} exists (use --force to replace it)")
+                raise FileExistsError(f"{p} exists")
 
         kinds: Counter[str] = Counter()
         by_key: Counter[str] = Counter()
@@ -998,7 +1000,7 @@ class PlayStats:
         if self.late:
             out += (f"; {self.late} sent more than {LATE_US / 1000:g} ms after their recorded time (max "
                     f"{self.late_max_us / 1000:.1f} ms): a receiver that stamps on arrival sees them late "
-                    "(--rt-priority helps)")
+                    "(a real-time priority for the player helps)")
         if self.interrupted:
             out += "; interrupted"
         return out
@@ -1010,7 +1012,7 @@ class _Clock:
 
     def __init__(self, rate: float, stop: threading.Event):
         if rate < 0:
-            raise ReplayError(f"--rate {rate}: must be >= 0 (0 = as fast as possible)")
+            raise ReplayError(f"rate {rate}: must be >= 0 (0 = as fast as possible)", option="rate")
         self.rate, self.stop = rate, stop
         self.t0: int | None = None
         self.wall0 = 0.0
@@ -1178,8 +1180,8 @@ def play_can(path: str | os.PathLike[str], buses: Mapping[str, Any], *, rate: fl
                               + (" (empty log)" if ctx.message_count == 0 else ""))
         unknown = set(buses) - set(ctx.buses)
         if unknown:
-            raise ReplayError(f"--channel: the log has buses {', '.join(ctx.buses)}, not "
-                              f"{', '.join(sorted(unknown))}")
+            raise ReplayError(f"channels: the log has buses {', '.join(ctx.buses)}, not "
+                              f"{', '.join(sorted(unknown))}", option="channels")
         play = [b for b in chosen if b in buses]
         if not play:
             raise ReplayError(f"{path}: no bus left to play (log buses {', '.join(ctx.buses)})")
@@ -1238,7 +1240,7 @@ def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop
         if not eligible:
             raise ReplayError(f"{path}: no recorded samples or efforts to publish on zenoh"
                               + (" (empty log)" if ctx.message_count == 0 else
-                                 " (only raw CAN? use --interface/--channel)"))
+                                 " (only raw CAN? play it onto CAN buses instead)"))
         start_ns, end_ns = ctx.window(start_s, duration_s)
         wanted = set(eligible)
         pubs = {}
@@ -1293,9 +1295,9 @@ def parse_can_ids(specs: Iterable[str]) -> list[int]:
             try:
                 value = int(item, 0)
             except ValueError:
-                raise ReplayError(f"--can-id {item!r}: not an integer (hex as 0x200)") from None
+                raise ReplayError(f"CAN id {item!r}: not an integer (hex as 0x200)", option="can_ids") from None
             if not 0 <= value < 1 << 29:
-                raise ReplayError(f"--can-id {item}: outside 0 .. 0x1FFFFFFF")
+                raise ReplayError(f"CAN id {item}: outside 0 .. 0x1FFFFFFF", option="can_ids")
             out.append(value)
     return out
 

@@ -86,13 +86,13 @@ def parse_bus_map(specs: Iterable[str], buses: Sequence[str]) -> dict[str, str]:
         bus, sep, chan = spec.partition("=")
         bus, chan = bus.strip(), chan.strip()
         if not sep or not bus or not chan:
-            raise CanLogError(f"--bus {spec!r}: expected BUS=CHANNEL (e.g. arm0=can0)")
+            raise CanLogError(f"bus map {spec!r}: expected BUS=CHANNEL (e.g. arm0=can0)", option="bus_map")
         if bus not in buses:
-            raise CanLogError(f"--bus {spec}: the robot has buses {', '.join(buses)}, not {bus}")
+            raise CanLogError(f"bus map {spec}: the robot has buses {', '.join(buses)}, not {bus}", option="bus_map")
         if bus in out:
-            raise CanLogError(f"--bus {spec}: bus {bus} is mapped twice")
+            raise CanLogError(f"bus map {spec}: bus {bus} is mapped twice", option="bus_map")
         if chan in out.values():
-            raise CanLogError(f"--bus {spec}: channel {chan} is mapped to two buses")
+            raise CanLogError(f"bus map {spec}: channel {chan} is mapped to two buses", option="bus_map")
         out[bus] = chan
     return out
 
@@ -159,7 +159,7 @@ class ImportStats:
         out = []
         if self.unfed:
             out.append(f"no channel maps to the robot's bus {', '.join(self.unfed)}: its devices get no frame and "
-                       "no effort can be good (map it with " + " ".join(f"--bus {b}=CHANNEL" for b in self.unfed)
+                       "no effort can be good (map it: " + " ".join(f"{b}=CHANNEL" for b in self.unfed)
                        + f"; channels found: {self.found()})")
         if self.unmapped:
             out.append("left out (channel maps to no bus): " + ", ".join(
@@ -175,7 +175,7 @@ class ImportStats:
                        "(recorded; the drivers reject and count them)")
         if self.fd_frames and not self.fd:
             out.append(f"{self.fd_frames} CAN FD frames on buses imported as classic CAN (the drivers count "
-                       "them as fd_on_classic): pass --fd if the buses run FD")
+                       "them as fd_on_classic): import them as CAN FD if the buses run FD")
         if self.bad_lines:
             out.append(f"{self.bad_lines} lines that are no frame, skipped (first: {self.first_bad_line})")
         if self.ended_early:
@@ -368,17 +368,18 @@ def import_frames(path: str | os.PathLike[str], buses: Sequence[str], bus_map: M
 
 def _check_mapping(path, stats: ImportStats, buses: Sequence[str], bus_map: Mapping[str, str]) -> None:
     """After a read: the errors a wrong or missing mapping gives, each listing the channels."""
-    hint = " ".join(f"--bus {b}=CHANNEL" for b in buses)
+    hint = " ".join(f"{b}=CHANNEL" for b in buses)
     if stats.frames_read == 0:
         raise CanLogError(f"{path}: no CAN frames in the file"
                           + (f" ({stats.ended_early})" if stats.ended_early else ""))
     absent = [f"{b}={c}" for b, c in bus_map.items() if c not in stats.by_channel]
     if absent:
-        raise CanLogError(f"{path}: --bus {', '.join(absent)}: no such channel in the file; "
-                          f"channels found: {stats.found()}")
+        raise CanLogError(f"{path}: bus map {', '.join(absent)}: no such channel in the file; "
+                          f"channels found: {stats.found()}", option="bus_map")
     if stats.frames_written == 0:
         raise CanLogError(f"{path}: no channel maps to a bus of the robot (buses "
-                          f"{', '.join(buses)}); channels found: {stats.found()}; map them with {hint}")
+                          f"{', '.join(buses)}); channels found: {stats.found()}; map them with {hint}",
+                          option="bus_map")
     # a bus of the robot with no channel: legitimate (a CSV log holds one bus), but its devices get
     # nothing and no effort can be good, so the user is told which and how to map it
     stats.unfed = [b for b in buses if b not in set(stats.channels.values())]
@@ -401,7 +402,7 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     fmt = log_format(path) or path.suffix
     stats = ImportStats(source=str(source_name or path), format=FORMATS.get(fmt, fmt), fd=fd)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} exists (use --force to replace it)")
+        raise FileExistsError(f"{out} exists")
     ok = False
     bar = _bar(path) if progress else None
     try:
@@ -451,8 +452,8 @@ def robot_for_log(robot: str | None, path) -> Any:
     import robot_description
 
     if robot is None:
-        raise CanLogError(f"{path}: a CAN log names no robot: pass --robot NAME|FILE.urdf "
-                          f"(built in: {', '.join(robot_description.BUILTIN)})")
+        raise CanLogError(f"{path}: a CAN log names no robot: name it, a built-in name or a URDF file "
+                          f"(built in: {', '.join(robot_description.BUILTIN)})", option="robot")
     return robot_description.load(robot)
 
 
@@ -470,10 +471,11 @@ def export_channels(fmt: str, buses: Sequence[str], bus_map: Mapping[str, str]) 
     if fmt in NUMBERED:
         bad = [f"{b}={c}" for b, c in chans.items() if not (c.isdigit() and int(c) >= 1)]
         if bad:
-            raise CanLogError(f"--bus {', '.join(bad)}: {FORMATS[fmt]} channels are numbers from 1")
+            raise CanLogError(f"bus map {', '.join(bad)}: {FORMATS[fmt]} channels are numbers from 1",
+                              option="bus_map")
     if fmt == ".csv" and len(chans) != 1:
-        raise CanLogError(f"a CSV log holds no channel, so one bus: choose it with --bus BUS=- "
-                          f"(buses {', '.join(chans)})")
+        raise CanLogError(f"a CSV log holds no channel, so one bus: choose it, BUS=- "
+                          f"(buses {', '.join(chans)})", option="bus_map")
     return chans
 
 
@@ -504,7 +506,7 @@ def export_log(out: str | os.PathLike[str], frames: Iterable[tuple[str, int, Any
     if fmt == ".blf" and out.suffix.lower() == ".gz":
         raise CanLogError(f"{out}: python-can writes no .blf.gz (BLF compresses itself): write .blf")
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} exists (use --force to replace it)")
+        raise FileExistsError(f"{out} exists")
     stats = ExportStats()
     tmp = out.with_name(f".part-{out.name}")      # same suffixes: python-can picks the format by them
     wchan = {b: _writer_channel(c, fmt) for b, c in channels.items()}

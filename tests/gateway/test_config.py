@@ -110,7 +110,7 @@ def test_cli_errors_are_one_line(tmp_path):
     f.write_text("[service]\nretry_s = -1\n")
     for args, says in [(("--config", str(f)), "retry_s must be > 0"),
                        (("--config", str(tmp_path / "none.toml")), "no such configuration file"),
-                       (("--config", str(ROOT / "deploy" / "zenoh" / "gateway.json5")), "--zenoh-config"),
+                       (("--config", str(ROOT / "deploy" / "zenoh" / "gateway.json5")), "[zenoh] config_file"),
                        ((), "give --interface and --channel, or [can] interface and channels")]:
         r = bsc("gateway", *args)
         assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and says in r.stderr, (args, r.stderr)
