@@ -107,7 +107,8 @@ def decode_batch(kind: str, ids: np.ndarray, data: np.ndarray, lengths: np.ndarr
         if rows.size == 0:
             continue
         w = words[rows]
-        fields, sat = {}, np.zeros(rows.shape, bool)
+        fields: dict[str, np.ndarray] = {}
+        sat = np.zeros(rows.shape, bool)
         for s in m.signals:
             raw = ((w >> np.uint64(s.shift)) & np.uint64(s.mask)).astype(np.int64)
             if s.signed:

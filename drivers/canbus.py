@@ -26,9 +26,12 @@ import argparse
 import dataclasses
 import re
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.errors import DriverError
+
+if TYPE_CHECKING:
+    import can
 
 
 class BusOptionsError(DriverError, ValueError):
@@ -58,12 +61,14 @@ def _value(text: str) -> Any:
         return low == "true"
     if low in ("none", "null"):
         return None
-    for kind in (int, float):
-        try:
-            return kind(text, 0) if kind is int else kind(text)
-        except ValueError:
-            pass
-    return text
+    try:
+        return int(text, 0)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
 
 def bus_kwarg(text: str) -> tuple[str, Any]:
@@ -80,7 +85,8 @@ def bus_kwarg(text: str) -> tuple[str, Any]:
 CHANNEL_HELP = "channel prefix (<prefix>-<bus>), or BUS=CHANNEL for each bus (repeatable)"
 
 
-def add_can_arguments(group, *, interface_help: str | None = "python-can interface: socketcan, udp_multicast, "
+def add_can_arguments(group: argparse._ActionsContainer, *,
+                      interface_help: str | None = "python-can interface: socketcan, udp_multicast, "
                       "pcan, kvaser, vector, virtual, ...", channel_help: str = CHANNEL_HELP,
                       fd_help: str = "the buses run CAN FD (same frames, bit-rate switch)") -> None:
     """The CAN options of every command that opens a robot's buses, on ``group`` (an argparse
@@ -95,7 +101,7 @@ def add_can_arguments(group, *, interface_help: str | None = "python-can interfa
     add_bus_arguments(group)
 
 
-def add_bus_arguments(group) -> None:
+def add_bus_arguments(group: argparse._ActionsContainer) -> None:
     """``-b/--bitrate``, ``--data-bitrate`` and ``--bus-kwarg`` on a command that opens buses."""
     from drivers.wire import BITRATE, FD_DATA_BITRATE
 
@@ -164,7 +170,7 @@ def check_interface(args: argparse.Namespace) -> None:
 
 
 def open_bus(interface: str, channel: str, options: BusOptions | None = None, *, fd: bool = False,
-             **fixed: Any):
+             **fixed: Any) -> can.BusABC:
     """``can.Bus`` of ``interface``/``channel`` with :meth:`BusOptions.kwargs` (python-can's
     configuration read once, here)."""
     import can

@@ -18,17 +18,19 @@ order, and complete only when every part carries the same counter. The completed
 from __future__ import annotations
 
 import logging
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import can
 
 from drivers import frames, wire
 from drivers.health import DEFAULT_TIMING, BusCounters, DeviceCounters, SourceTiming
-from drivers.samples import BusHealth, DeviceHealth, Sample
+from drivers.samples import BusHealth, DeviceHealth, ImuSample, Sample, ThrusterCommand
 
 log = logging.getLogger(__name__)
 
 Sink = Callable[[Sample], None]
+Handler = Callable[[can.Message, bytes], None]
+"""A driver's work on one validated frame of its own: ``handler(msg, payload)``."""
 
 
 def _t_ns(msg: can.Message) -> int:
@@ -77,7 +79,7 @@ class Driver(can.Listener):
 
     def __init__(self, bus: str, sink: Sink, fd: bool = False):
         self.bus, self.sink, self.fd = bus, sink, fd
-        self._route: dict[int, tuple[wire.Layout, DeviceCounters, Callable[[can.Message, bytes], None]]] = {}
+        self._route: dict[int, tuple[wire.Layout, DeviceCounters, Handler]] = {}
         self.errors = 0
 
     @property
@@ -157,7 +159,7 @@ class JointDriver(Driver):
             dev = DeviceCounters(name, arm, _period_ns("arm", i), wire.DRIVE_FAULT, timing)
             self._route[i] = (lays[i], dev, self._make(name, dev))
 
-    def _make(self, name: str, dev: DeviceCounters):
+    def _make(self, name: str, dev: DeviceCounters) -> Handler:
         def handle(msg: can.Message, data: bytes) -> None:
             s = frames.decode_joint(data, name, _t_ns(msg))
             if dev.admit(s.counter, s.t_ns, s.saturated, s.status):
@@ -180,13 +182,13 @@ class TorqueCommandDriver(Driver):
         ngroups = -(-len(names) // wire.CMD_GROUP)
         for g in range(ngroups):
             i = wire.TORQUE_CMD_BASE + g
-            slots = names[g * wire.CMD_GROUP:(g + 1) * wire.CMD_GROUP]
+            slots: list[str | None] = list(names[g * wire.CMD_GROUP:(g + 1) * wire.CMD_GROUP])
             slots += [None] * (wire.CMD_GROUP - len(slots))
             dname = f"{arm}/torque_cmd" + (f"/{g}" if ngroups > 1 else "")
             dev = DeviceCounters(dname, arm, _period_ns("arm", i), 0, timing)
             self._route[i] = (lays[i], dev, self._make(slots, dev))
 
-    def _make(self, slots, dev: DeviceCounters):
+    def _make(self, slots: Sequence[str | None], dev: DeviceCounters) -> Handler:
         def handle(msg: can.Message, data: bytes) -> None:
             cmds = frames.decode_torque_commands(data, slots, _t_ns(msg))
             if dev.sequence(data[0], _t_ns(msg)):
@@ -208,7 +210,7 @@ class _MultiFrameDriver(Driver):
         for i in self._parts:
             self._route[i] = (lays[i], self.dev, self._part)
 
-    def _decode(self, parts: dict[int, bytes], t_ns: int):
+    def _decode(self, parts: dict[int, bytes], t_ns: int) -> ImuSample | ThrusterCommand:
         raise NotImplementedError
 
     def _part(self, msg: can.Message, data: bytes) -> None:
@@ -232,10 +234,10 @@ class ImuDriver(_MultiFrameDriver):
     def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         super().__init__("imu", sink, fd, timing, wire.IMU_FAULT)
 
-    def _decode(self, parts, t_ns):
+    def _decode(self, parts: dict[int, bytes], t_ns: int) -> ImuSample:
         return frames.decode_imu(parts, t_ns)
 
-    def _device_ns(self, parts):
+    def _device_ns(self, parts: dict[int, bytes]) -> int:
         # IMU_SAMPLE_TIME: ctr u8, time_us u32 big-endian (the IMU's clock; exact loss counts)
         return int.from_bytes(parts[wire.IMU_TIME_ID][1:5], "big") * 1000
 
@@ -248,7 +250,7 @@ class ThrusterCommandDriver(_MultiFrameDriver):
     def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         super().__init__("thrusters", sink, fd, timing, 0)
 
-    def _decode(self, parts, t_ns):
+    def _decode(self, parts: dict[int, bytes], t_ns: int) -> ThrusterCommand:
         return frames.decode_thruster(parts, t_ns)
 
 
@@ -335,7 +337,7 @@ class BusDispatcher:
 
     def __init__(self, monitor: BusMonitor, drivers: Iterable[Driver]):
         self.monitor, self.drivers = monitor, list(drivers)
-        table: dict[int, tuple] = {}
+        table: dict[int, tuple[int, DeviceCounters, Handler, bool]] = {}
         merged = True
         for d in self.drivers:
             for i, (lay, dev, handler) in d._route.items():
@@ -392,9 +394,10 @@ def drivers_for(spec: wire.BusSpec, sink: Sink, fd: bool = False,
                 timing: SourceTiming = DEFAULT_TIMING) -> list[Driver]:
     """The device drivers for one bus of a :class:`~drivers.wire.WireMap`."""
     if spec.kind == "arm":
-        return [FtDriver(spec.arm, sink, fd, timing),
-                JointDriver(spec.arm, spec.joints, sink, fd, timing),
-                TorqueCommandDriver(spec.arm, spec.joints, sink, fd, timing)]
+        arm = spec.arm_name
+        return [FtDriver(arm, sink, fd, timing),
+                JointDriver(arm, spec.joints, sink, fd, timing),
+                TorqueCommandDriver(arm, spec.joints, sink, fd, timing)]
     return [ImuDriver(sink, fd, timing), ThrusterCommandDriver(sink, fd, timing),
             ValveCommandDriver(sink, fd, timing)]
 

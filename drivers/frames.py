@@ -33,7 +33,7 @@ Byte maps (``ctr`` = sample counter mod 256, identical in every frame of one sam
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence, TypeVar
 
 import can
 
@@ -69,8 +69,14 @@ IMU_PARTS = (wire.IMU_TIME_ID, wire.IMU_STATUS_ID, wire.IMU_QUAT_WX_ID, wire.IMU
 THRUSTER_PARTS = (wire.THRUSTER_FORCE_ID, wire.THRUSTER_MOMENT_ID, wire.THRUSTER_VALVES_ID)
 FT_PARTS = (wire.FT_A_ID, wire.FT_B_ID)
 
+Values = tuple[Any, ...]
+"""A frame's physical values in DBC order: ``int`` for integer signals, ``float`` for scaled ones
+(which is which is the layout's, from the DBC: a type checker cannot tell)."""
+FieldsFn = Callable[[bytes], tuple[Values, bool]]
+T = TypeVar("T")
 
-def decode_fields(lay: wire.Layout, data: bytes) -> tuple[tuple, bool]:
+
+def decode_fields(lay: wire.Layout, data: bytes) -> tuple[Values, bool]:
     """Physical values of every signal of one frame (DBC order) and whether any was clamped.
 
     Integer signals (counters, status words) stay ``int``; scaled ones are ``raw * factor``
@@ -79,7 +85,7 @@ def decode_fields(lay: wire.Layout, data: bytes) -> tuple[tuple, bool]:
     if len(data) != lay.length:
         raise DecodeError(f"{lay.name}: {len(data)} bytes, expected {lay.length}")
     raw = lay.raw(bytes(data))
-    out = []
+    out: list[int | float] = []
     sat = False
     for r, s, lim in zip(raw, lay.scales, lay.sat_limit):
         if s is None:
@@ -93,13 +99,14 @@ def decode_fields(lay: wire.Layout, data: bytes) -> tuple[tuple, bool]:
 
 # --- fast paths ---------------------------------------------------------------------------------
 
-def builder(cls):
+def builder(cls: type[T]) -> Callable[..., T]:
     """``make(*values)`` that builds the same object as ``cls(*values)`` (every field, in order)
     for a frozen slotted dataclass, about twice as fast: no ``__init__``, the slots are set
     directly (what the frozen ``__init__`` does through ``object.__setattr__``). Any class this
     does not fit (no slots, ``__post_init__``, defaults computed by factories...) gets ``cls``."""
     import dataclasses
 
+    name = cls.__name__
     if not dataclasses.is_dataclass(cls):
         return cls
     fields = dataclasses.fields(cls)
@@ -113,15 +120,17 @@ def builder(cls):
     body = "; ".join(f"s{i}(o, a{i})" for i in range(len(names)))
     ns = {"new": object.__new__, "cls": cls, **{f"s{i}": cls.__dict__[n].__set__ for i, n in enumerate(names)}}
     exec(f"def make({args}):\n    o = new(cls); {body}\n    return o\n", ns)  # noqa: S102
-    make = ns["make"]
-    make.__doc__ = f"Fast positional constructor of {cls.__name__} (drivers.frames.builder)."
+    make: Callable[..., T] = ns["make"]
+    make.__doc__ = f"Fast positional constructor of {name} (drivers.frames.builder)."
     return make
 
 
-def _compile_fields(lay: wire.Layout):
+def _compile_fields(lay: wire.Layout) -> FieldsFn:
     """``f(data) -> (values, saturated)``: exactly :func:`decode_fields` for a payload of the
     right length (the caller checks it), as straight-line code for this one layout."""
-    flat, vals, sat = [], [], []
+    flat: list[str] = []
+    vals: list[str] = []
+    sat: list[tuple[str, str]] = []
     k = 0
     for i, (b, s, lim) in enumerate(zip(lay.bits, lay.scales, lay.sat_limit)):
         if b == 24:
@@ -146,19 +155,20 @@ def _compile_fields(lay: wire.Layout):
         if pre:
             lines.append("    " + pre.strip().rstrip(";"))
     lines.append(f"    return ({', '.join(vals)},), {' or '.join(c for _, c in sat) or 'False'}")
-    ns = {"unpack": lay.struct.unpack}
+    ns: dict[str, Any] = {"unpack": lay.struct.unpack}
     for i, (s, lim) in enumerate(zip(lay.scales, lay.sat_limit)):
         if s is not None:
             ns[f"S{i}"], ns[f"L{i}"] = s, lim
     exec("\n".join(lines) + "\n", ns)  # noqa: S102
-    return ns["f"]
+    f: FieldsFn = ns["f"]
+    return f
 
 
-def _checked(lay: wire.Layout):
+def _checked(lay: wire.Layout) -> FieldsFn:
     f = _compile_fields(lay)
     length, name = lay.length, lay.name
 
-    def fields(data) -> tuple[tuple, bool]:
+    def fields(data: bytes) -> tuple[Values, bool]:
         if len(data) != length:
             raise DecodeError(f"{name}: {len(data)} bytes, expected {length}")
         return f(data)
@@ -172,6 +182,7 @@ _F_THR = tuple(_checked(lay) for lay in (THR_F, THR_M, THR_V))
 _WRENCH, _JOINT, _IMU = builder(WrenchSample), builder(JointSample), builder(ImuSample)
 _TORQUE, _THRUSTER, _VALVE = builder(TorqueCommand), builder(ThrusterCommand), builder(ValveCommand)
 _FT_SAT, _DRIVE_SAT, _IMU_SAT = wire.FT_SAT, wire.DRIVE_SAT, wire.IMU_SAT
+_TORQUE_SCALE, _IMU_W_SCALE, _IMU_A_SCALE = TORQUE_CMD.scale(1), IMU_W.scale(1), IMU_A.scale(1)
 
 
 # --- decoders: payloads -> samples -----------------------------------------------------------
@@ -215,7 +226,7 @@ def decode_torque_commands(data: bytes, devices: Sequence[str | None], t_ns: int
     raw = lay.raw(bytes(data)) if len(data) == lay.length else None
     if raw is None:
         raise DecodeError(f"{lay.name}: {len(data)} bytes, expected {lay.length}")
-    c, scale, lim = raw[0], lay.scales[1], lay.sat_limit[1]
+    c, scale, lim = raw[0], _TORQUE_SCALE, lay.sat_limit[1]
     return [_TORQUE(dev, t_ns, c, r * scale, r >= lim or r <= -lim)
             for dev, r in zip(devices, raw[1:]) if dev is not None]
 
@@ -304,7 +315,9 @@ def _u(value: int, bits: int, what: str) -> int:
 def _pack_scaled(lay: wire.Layout, head: Sequence[int], values: Sequence[float]) -> tuple[bytes, bool]:
     n = len(head)
     raw, sat = list(head), False
-    for v, s, lim in zip(values, lay.scales[n:], lay.sat_limit[n:]):
+    for v, s, lim, name in zip(values, lay.scales[n:], lay.sat_limit[n:], lay.signals[n:]):
+        if s is None:
+            raise EncodeError(f"{lay.name}.{name}: an integer signal where a scaled value is given")
         r, clamped = _q(float(v), s, lim)
         raw.append(r)
         sat |= clamped
@@ -338,7 +351,7 @@ def torque_payloads(commands: Sequence[TorqueCommand]) -> list[tuple[int, bytes]
     if not 1 <= len(commands) <= wire.MAX_JOINTS:
         raise EncodeError(f"1..{wire.MAX_JOINTS} torque commands per arm, not {len(commands)}")
     c = commands[0].counter & 0xFF
-    out = []
+    out: list[tuple[int, bytes]] = []
     for g in range(0, len(commands), wire.CMD_GROUP):
         taus = [cmd.torque_nm for cmd in commands[g:g + wire.CMD_GROUP]]
         taus += [0.0] * (wire.CMD_GROUP - len(taus))
@@ -358,12 +371,12 @@ def imu_payloads(sample: ImuSample, time_us: int | None = None) -> list[tuple[in
     clip = 0
     w_raw = [c]
     for i, v in enumerate(sample.rate_rad_s):
-        r, s = _q(float(v), IMU_W.scales[1], IMU_W.sat_limit[1])
+        r, s = _q(float(v), _IMU_W_SCALE, IMU_W.sat_limit[1])
         w_raw.append(r)
         clip |= (1 << (11 + i)) if s else 0
     a_raw = [c]
     for i, v in enumerate(sample.accel_m_s2):
-        r, s = _q(float(v), IMU_A.scales[1], IMU_A.sat_limit[1])
+        r, s = _q(float(v), _IMU_A_SCALE, IMU_A.sat_limit[1])
         a_raw.append(r)
         clip |= (1 << (8 + i)) if s else 0
     if sample.saturated and not clip and not (sqa or sqb):

@@ -177,7 +177,7 @@ class DeviceCounters:
             self.saturated += 1
 
     def snapshot(self, now_ns: int) -> DeviceHealth:
-        quiet = now_ns - self.last_t_ns
+        quiet: float = now_ns - self.last_t_ns             # timestamp ns, then device ns at a rate
         if self.rate is not None:
             quiet *= self.rate
         stale = self.samples == 0 or quiet > self.stale_periods * self.period_ns

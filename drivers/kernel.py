@@ -70,19 +70,28 @@ from __future__ import annotations
 
 import struct
 import sys
-from typing import Iterable, NamedTuple
+from typing import Any, Callable, Iterable, NamedTuple
 
 import can
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from drivers import frames, health, wire
 from drivers.health import DEFAULT_TIMING, SourceTiming
-from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, Sample, ThrusterCommand,
+from drivers.samples import (BusHealth, DeviceHealth, Health, ImuSample, JointSample, Sample, ThrusterCommand,
                              TorqueCommand, ValveCommand, WrenchSample)
 
 # IEEE semantics, no reassociation: the same scalar operations as the Python drivers, same bits
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+# Kernel signatures: ``Ints``/``Floats`` are the constant tables; a structured array (frames,
+# events, bus and device state) is a plain ``np.ndarray`` and one of its rows a ``Record``: a
+# numba record view whose fields numpy's types cannot name (the dtypes above list them).
+Ints = npt.NDArray[np.int64]
+Floats = npt.NDArray[np.float64]
+Record = Any
+Flag = bool | np.bool_          # a boolean, Python's or numpy's: numba compiles both to one
 
 # --- record layouts --------------------------------------------------------------------------
 
@@ -190,44 +199,45 @@ def _value_tables() -> tuple[list[float], list[int]]:
              + [(f.IMU_W, k) for k in (1, 2, 3)] + [(f.IMU_A, k) for k in (1, 2, 3)]
              + [(f.THR_F, k) for k in (1, 2, 3)] + [(f.THR_M, k) for k in (1, 2, 3)])
     assert len(pairs) == _NVAL
-    return [float(lay.scales[k]) for lay, k in pairs], [int(lay.sat_limit[k]) for lay, k in pairs]
+    return [lay.scale(k) for lay, k in pairs], [int(lay.sat_limit[k]) for lay, k in pairs]
 
 
 # --- the kernel --------------------------------------------------------------------------------
 
 @_jit
-def _s16(w, k):
+def _s16(w: np.int64, k: int) -> np.int64:
     """Signed big-endian 16 bits at byte k of a payload word."""
     v = (((w >> (8 * k)) & 0xFF) << 8) | ((w >> (8 * k + 8)) & 0xFF)
     return v - 0x10000 if v >= 0x8000 else v
 
 
 @_jit
-def _s24(w, k):
+def _s24(w: np.int64, k: int) -> np.int64:
     v = (((w >> (8 * k)) & 0xFF) << 16) | (((w >> (8 * k + 8)) & 0xFF) << 8) | ((w >> (8 * k + 16)) & 0xFF)
     return v - 0x1000000 if v >= 0x800000 else v
 
 
 @_jit
-def _u32(w, k):
+def _u32(w: np.int64, k: int) -> np.int64:
     return ((((w >> (8 * k)) & 0xFF) << 24) | (((w >> (8 * k + 8)) & 0xFF) << 16)
             | (((w >> (8 * k + 16)) & 0xFF) << 8) | ((w >> (8 * k + 24)) & 0xFF))
 
 
 @_jit
-def _s32(w, k):
+def _s32(w: np.int64, k: int) -> np.int64:
     v = _u32(w, k)
     return v - 0x100000000 if v >= 0x80000000 else v
 
 
 @_jit
-def _at_limit(raw, ci, slot):
-    lim = ci[_CI_LIM + slot]
+def _at_limit(raw: np.int64, ci: Ints, slot: int) -> np.bool_:
+    lim: np.int64 = ci[_CI_LIM + slot]
     return raw >= lim or raw <= -lim
 
 
 @_jit
-def _sequence(ds, counter, t_ns, device_ns, ci, cf):
+def _sequence(ds: Record, counter: np.int64, t_ns: np.int64, device_ns: np.int64 | int, ci: Ints,
+              cf: Floats) -> bool:
     """DeviceCounters.sequence, line for line (device_ns -1 = None)."""
     last = ds.last_counter
     if last >= 0:
@@ -287,7 +297,7 @@ def _sequence(ds, counter, t_ns, device_ns, ci, cf):
 
 
 @_jit
-def _accept(ds, t_ns, saturated, status):
+def _accept(ds: Record, t_ns: np.int64, saturated: Flag, status: np.int64 | int) -> None:
     ds.samples += 1
     ds.last_t_ns = t_ns
     ds.status = status
@@ -296,7 +306,7 @@ def _accept(ds, t_ns, saturated, status):
 
 
 @_jit
-def _assemble(ds, part, n_parts, counter, word, t_ns):
+def _assemble(ds: Record, part: int, n_parts: int, counter: np.int64, word: np.int64, t_ns: np.int64) -> bool:
     """_Assembler.add: True when this part completes the sample (its parts are in ds.parts)."""
     if ds.asm_mask != 0 and counter != ds.asm_counter:
         ds.rejected[_R_INCOMPLETE] += 1
@@ -316,7 +326,8 @@ def _assemble(ds, part, n_parts, counter, word, t_ns):
 
 
 @_jit
-def _event(ev, kind, device, t_ns, counter, saturated, status, valves, frame):
+def _event(ev: Record, kind: int, device: np.int64 | int, t_ns: np.int64, counter: np.int64, saturated: Flag,
+           status: np.int64 | int, valves: np.int64 | int, frame: int) -> None:
     ev.kind = kind
     ev.device = device
     ev.t_ns = t_ns
@@ -330,7 +341,8 @@ def _event(ev, kind, device, t_ns, counter, saturated, status, valves, frame):
 
 
 @_jit
-def _feed(fr, start, ci, cf, bus, dev, out, k):
+def _feed(fr: np.ndarray, start: int, ci: Ints, cf: Floats, bus: np.ndarray, dev: np.ndarray, out: np.ndarray,
+          k: int) -> tuple[int, int]:
     """Frames ``fr[start:]`` -> events ``out[k:]``. Stops early, at a frame boundary, when fewer
     than 3 event rows (a torque command's worst case) are free. Returns (next frame, next event)."""
     n_bus = ci[_CI_NBUS]
@@ -353,7 +365,7 @@ def _feed(fr, start, ci, cf, bus, dev, out, k):
         if flags & FLAG_FD:
             bs.busy_s += cf[_CF_FD + length]
         else:
-            bs.busy_s += cf[min(dlc, 8)]
+            bs.busy_s += cf[min(dlc, 8)]  # type: ignore[call-overload]  # numpy's stubs: min(int64, int) has no type
         if flags & FLAG_ERROR:
             bs.rejected[_R_ERROR] += 1
             continue
@@ -406,7 +418,7 @@ def _feed(fr, start, ci, cf, bus, dev, out, k):
                 k += 1
         elif typ == _T_TORQUE:
             if _sequence(ds, ctr, t, -1, ci, cf):
-                any_sat = False
+                any_sat: Flag = False
                 for s in range(3):
                     if (code >> (32 + 10 * s)) & 0x3FF:
                         any_sat = any_sat or _at_limit(_s16(w, 1 + 2 * s), ci, _V_TORQUE)
@@ -593,7 +605,7 @@ class DriverCore:
                 routes[i] = code | lays[i].length << 8
 
             if spec.kind == "arm":                        # devices.drivers_for
-                arm = spec.arm
+                arm = spec.arm_name
                 a = len(arm_names)
                 arm_names.append(arm)
                 d = add(arm, arm, "arm", wire.FT_A_ID, wire.FT_FAULT)
@@ -641,9 +653,10 @@ class DriverCore:
         self._dev["last_counter"] = -1
         self._dev["last_device_ns"] = -1
         self._out = np.zeros(256, EVENT_DTYPE)
-        self._make = {WRENCH: frames.builder(WrenchSample), JOINT: frames.builder(JointSample),
-                      TORQUE: frames.builder(TorqueCommand), IMU: frames.builder(ImuSample),
-                      THRUSTER: frames.builder(ThrusterCommand), VALVE: frames.builder(ValveCommand)}
+        self._make: dict[int, Callable[..., Sample]] = {
+            WRENCH: frames.builder(WrenchSample), JOINT: frames.builder(JointSample),
+            TORQUE: frames.builder(TorqueCommand), IMU: frames.builder(ImuSample),
+            THRUSTER: frames.builder(ThrusterCommand), VALVE: frames.builder(ValveCommand)}
         self._dev_health = frames.builder(DeviceHealth)
 
     # -- frames in, events out
@@ -696,10 +709,10 @@ class DriverCore:
         objects as the Python drivers give (resets the measured-load window, as they do)."""
         return self._bus_health(now_ns), self._device_health(now_ns)
 
-    def health_list(self, now_ns: int) -> list:
+    def health_list(self, now_ns: int) -> list[Health]:
         """The same snapshots in ``gateway.pipeline.Pipeline.health`` order: each bus, then its devices."""
         buses, devs = self.health(now_ns)
-        out = []
+        out: list[Health] = []
         for b, h in enumerate(buses):
             out.append(h)
             out += [x for x, d in zip(devs, self._devices) if d.bus_index == b]
@@ -749,7 +762,7 @@ class DriverCore:
         n = events.shape[0]
         kinds = events["kind"]
         present = np.bincount(kinds, minlength=len(KINDS)).tolist()
-        out: list = [None] * n
+        out: list[Any] = [None] * n               # a Sample in every slot at the end: kinds partition events
         mk = self._make
         for kind, count in enumerate(present):
             if not count:

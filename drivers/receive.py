@@ -33,13 +33,22 @@ from __future__ import annotations
 import socket
 import struct
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
 
+if TYPE_CHECKING:
+    import can
+
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+Bytes = npt.NDArray[np.uint8]   # datagrams (one per row), a datagram, a key
+Ints = npt.NDArray[np.int64]
+Int = int | np.int64            # an integer in a kernel: numba makes both an int64
 
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 _TIMESPEC = struct.Struct("@qq")
@@ -52,7 +61,7 @@ _FD_DLC = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64], dtyp
 # --- SocketCAN -------------------------------------------------------------------------------------
 
 @_jit
-def parse_socketcan(raw, lens, ts, bus, little, fd_dlc, out):
+def parse_socketcan(raw: Bytes, lens: Ints, ts: Ints, bus: int, little: bool, fd_dlc: Ints, out: np.ndarray) -> int:
     """``raw`` (N, 72) datagrams of ``lens`` bytes received at ``ts`` ns -> ``out`` rows. Returns
     the number of rows written (datagrams of another size are not frames: skipped)."""
     k = 0
@@ -115,7 +124,7 @@ def parse_socketcan(raw, lens, ts, bus, little, fd_dlc, out):
 # --- python-can udp_multicast (msgpack) ------------------------------------------------------------
 
 @_jit
-def _mp_uint(d, p, n):
+def _mp_uint(d: Bytes, p: Int, n: Int) -> np.int64:
     v = np.int64(0)
     for j in range(n):
         v = (v << 8) | np.int64(d[p + j])
@@ -123,7 +132,7 @@ def _mp_uint(d, p, n):
 
 
 @_jit
-def _mp_value(d, p, end):
+def _mp_value(d: Bytes, p: Int, end: Int) -> tuple[int, Int, Int, Int, Int]:
     """(kind, int value, start, length, next position) of the msgpack value at ``p``: kind 0 nil,
     1 bool, 2 int, 3 float (skipped), 4 str, 5 bin, -1 not understood."""
     if p >= end:
@@ -172,7 +181,7 @@ def _mp_value(d, p, end):
 
 
 @_jit
-def _key_is(d, s, n, key):
+def _key_is(d: Bytes, s: Int, n: Int, key: Bytes) -> bool:
     if n != key.shape[0]:
         return False
     for j in range(n):
@@ -182,7 +191,7 @@ def _key_is(d, s, n, key):
 
 
 @_jit
-def parse_udp(raw, lens, ts, bus, keys, out, bad):
+def parse_udp(raw: Bytes, lens: Ints, ts: Ints, bus: int, keys: tuple[Bytes, ...], out: np.ndarray, bad: Ints) -> int:
     """``raw`` (N, slot) msgpack datagrams -> ``out`` rows; returns the rows written and counts
     the datagrams that are not python-can messages in ``bad[0]``. ``keys``: the field names in
     :data:`_UDP_KEYS` order, as byte arrays."""
@@ -194,6 +203,11 @@ def parse_udp(raw, lens, ts, bus, keys, out, bad):
             bad[0] += 1
             continue
         b = np.int64(d[0])
+        p: Int                          # (declarations only: no code; numba types both as int64)
+        aid: Int
+        dlc: Int
+        ds: Int
+        dn: Int
         if 0x80 <= b <= 0x8F:
             count, p = b - 0x80, 1
         elif b == 0xDE and end >= 3:
@@ -332,16 +346,18 @@ class BusReader:
         return self._rows[:k]
 
 
-def reader_for(bus, bus_index: int) -> BusReader | None:
+def reader_for(bus: can.BusABC, bus_index: int) -> BusReader | None:
     """A :class:`BusReader` for a python-can SocketCAN or ``udp_multicast`` bus (they are the
     interfaces with a socket of their own), else None (read it with ``bus.recv``)."""
+    socketcan: tuple[type, ...]
     try:
         from can.interfaces.socketcan import SocketcanBus
+        socketcan = (SocketcanBus,)
     except ImportError:  # pragma: no cover - python-can always has it
-        SocketcanBus = ()
+        socketcan = ()
     from can.interfaces.udp_multicast import UdpMulticastBus
 
-    if isinstance(bus, SocketcanBus):
+    if isinstance(bus, socketcan):
         sock = getattr(bus, "socket", None)
         return BusReader(sock, bus_index, "socketcan") if isinstance(sock, socket.socket) else None
     if isinstance(bus, UdpMulticastBus):

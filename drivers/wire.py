@@ -26,7 +26,7 @@ import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Protocol, Sequence
 
 import cantools
 
@@ -115,7 +115,8 @@ class Layout:
         v = self.struct.unpack(data)
         if not self.has_i24:
             return v
-        out, i = [], 0
+        out: list[int] = []
+        i = 0
         for b in self.bits:
             if b == 24:
                 out.append((v[i] << 16) | v[i + 1])
@@ -125,10 +126,18 @@ class Layout:
                 i += 1
         return tuple(out)
 
+    def scale(self, i: int) -> float:
+        """The DBC factor of signal ``i``, which must be a scaled one (a :class:`WireError` if
+        the DBC made it an integer signal: the code would read it as a count)."""
+        s = self.scales[i]
+        if s is None:
+            raise WireError(f"{self.name}.{self.signals[i]}: an integer signal where a scaled one is expected")
+        return s
+
     def pack_raw(self, raw: Iterable[int]) -> bytes:
         if not self.has_i24:
             return self.struct.pack(*raw)
-        flat = []
+        flat: list[int] = []
         for b, r in zip(self.bits, raw):
             if b == 24:
                 flat += [r >> 16, r & 0xFFFF]
@@ -141,7 +150,7 @@ _FMT = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h", (32,
         (24, True): "bH", (24, False): "BH"}
 
 
-def _layout(msg) -> Layout:
+def _layout(msg: cantools.database.can.Message) -> Layout:
     fmt, pos = ">", 0
     sigs = sorted(msg.signals, key=lambda s: s.start)
     for s in sigs:
@@ -171,7 +180,10 @@ def database(kind: str) -> cantools.database.can.Database:
     except KeyError:
         raise WireError(f"unknown bus kind {kind!r} (known: {', '.join(DBC_FILES)})") from None
     db = cantools.database.load_file(str(path))
-    if db.dbc.attributes["BscBus"].value != kind:
+    if not isinstance(db, cantools.database.can.Database):
+        raise WireError(f"{path.name}: not a CAN database")
+    bus = db.dbc.attributes.get("BscBus") if db.dbc is not None else None
+    if bus is None or bus.value != kind:
         raise WireError(f"{path.name}: BscBus attribute is not {kind!r}")
     return db
 
@@ -253,6 +265,13 @@ class BusSpec:
     ids: frozenset[int] = frozenset()
 
     @property
+    def arm_name(self) -> str:
+        """The arm an arm bus serves (:attr:`arm`); a :class:`WireError` for a bus that serves none."""
+        if self.arm is None:
+            raise WireError(f"bus {self.name} ({self.kind}) serves no arm")
+        return self.arm
+
+    @property
     def layouts(self) -> dict[int, Layout]:
         return {i: lay for i, lay in layouts(self.kind).items() if i in self.ids}
 
@@ -275,6 +294,26 @@ def arm_ids(n_joints: int) -> frozenset[int]:
 SPACECRAFT_IDS = frozenset(layouts("spacecraft"))
 
 
+class ArmLike(Protocol):
+    """What :meth:`WireMap.from_robot` reads of an arm (:class:`robot_description.Arm`)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def joint_names(self) -> Sequence[str]: ...
+
+
+class RobotLike(Protocol):
+    """What :meth:`WireMap.from_robot` reads of a robot (:class:`robot_description.Robot`)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def arms(self) -> Sequence[ArmLike]: ...
+
+
 @dataclass(frozen=True, slots=True)
 class WireMap:
     """Which bus carries which device, for one robot. ``buses`` is ordered: arms, then spacecraft.
@@ -287,7 +326,7 @@ class WireMap:
     buses: dict[str, BusSpec]
 
     @classmethod
-    def from_robot(cls, robot) -> "WireMap":
+    def from_robot(cls, robot: RobotLike) -> "WireMap":
         """From a :class:`robot_description.Robot` (or anything with ``name`` and ``arms`` whose
         items have ``name`` and ``joint_names``)."""
         buses: dict[str, BusSpec] = {}
