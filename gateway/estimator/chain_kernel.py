@@ -42,12 +42,13 @@ Usage::
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
-from .model import EstimatorModel, EstimatorModelError, skew
+from .model import ChainLink, EstimatorModel, EstimatorModelError, skew
 
 WEIGHTS = (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
 """Default least-squares weights of the F/T channels ``[f, t]``: 1/sigma, force 1/0.25 N, moment
@@ -60,6 +61,11 @@ _MAX_SWEEPS = 60          # one-sided Jacobi converges quadratically: 4-7 sweeps
 
 # IEEE semantics (division by zero gives inf, no check); no fast-math: the bits are fixed
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+F64 = npt.NDArray[np.float64]     # any shape: each function's docstring gives it
+I64 = npt.NDArray[np.int64]
+Outputs = tuple[F64, F64, F64, F64, F64, F64]
+"""``(simp, ddq, full, a_s, dw_s, arm_w)`` of :meth:`EpochKernel.epoch` and :meth:`EpochKernel.batch`."""
 
 # layout of ChainArrays.link[j, i]: one link of arm j, internal frames (axis +z)
 _LINK = 25                # C (9, row-major) | t (3) | m | h = m c (3) | Io (9, row-major)
@@ -82,11 +88,11 @@ class ChainArrays(NamedTuple):
     - ``base`` (19,): ``m_s`` (kg), ``I_s`` and ``I_s^-1`` (row-major; body frame, about C).
     """
 
-    arm_n: np.ndarray
-    arm_col: np.ndarray
-    sensor: np.ndarray
-    link: np.ndarray
-    base: np.ndarray
+    arm_n: I64
+    arm_col: I64
+    sensor: F64
+    link: F64
+    base: F64
 
 
 def pack(model: EstimatorModel) -> ChainArrays:
@@ -130,7 +136,7 @@ def pack(model: EstimatorModel) -> ChainArrays:
     return arrays
 
 
-def _check_link(arm: str, i: int, lk, row: np.ndarray) -> None:
+def _check_link(arm: str, i: int, lk: ChainLink, row: np.ndarray) -> None:
     # The kernel applies X_motion, X_force and the inertia in structured form: fail here, not
     # with wrong torques, if ChainLink's conventions ever change.
     C, t, m, h, Io = row[:9].reshape(3, 3), row[_T:_T + 3], row[_M], row[_H:_H + 3], row[_IO:].reshape(3, 3)
@@ -145,7 +151,7 @@ def _check_link(arm: str, i: int, lk, row: np.ndarray) -> None:
 # --- 6-vector transforms, in place allowed (every input is read before an output is written) ----
 
 @_jit
-def _to_child(lk, c, s, x, y, tr, pu):
+def _to_child(lk: F64, c: float, s: float, x: F64, y: F64, tr: int, pu: int) -> None:
     """y = Rz(q)^T [C (x_tr - t x x_pu); C x_pu]: a spatial vector from the parent's internal frame
     to this joint's (``c, s = cos q, sin q``). ``x_tr`` is the triple at offset ``tr``, the one that
     changes with the reference point (a twist's linear velocity, a wrench's moment), ``x_pu`` the
@@ -170,19 +176,19 @@ def _to_child(lk, c, s, x, y, tr, pu):
 
 
 @_jit
-def _motion_to_child(lk, c, s, x, y):
+def _motion_to_child(lk: F64, c: float, s: float, x: F64, y: F64) -> None:
     """y = Rz(q)^T X_motion x, a twist (linear, angular)."""
     _to_child(lk, c, s, x, y, 0, 3)
 
 
 @_jit
-def _force_to_child(lk, c, s, x, y):
+def _force_to_child(lk: F64, c: float, s: float, x: F64, y: F64) -> None:
     """y = Rz(q)^T X_force x, a wrench (force, moment; the moment moves to the joint origin)."""
     _to_child(lk, c, s, x, y, 3, 0)
 
 
 @_jit
-def _force_to_parent(lk, c, s, x, y):
+def _force_to_parent(lk: F64, c: float, s: float, x: F64, y: F64) -> None:
     """The inverse of :func:`_force_to_child`: a wrench from this joint's internal frame to the
     parent's (moment about the parent's origin)."""
     a0 = c * x[0] - s * x[1]
@@ -204,7 +210,7 @@ def _force_to_parent(lk, c, s, x, y):
 
 
 @_jit
-def _inertia(lk, x, y):
+def _inertia(lk: F64, x: F64, y: F64) -> None:
     """y = I x, the link's spatial inertia about its joint origin: ``f = m v - h x w``,
     ``n = h x v + Io w`` (x = (v, w))."""
     m = lk[12]
@@ -219,7 +225,7 @@ def _inertia(lk, x, y):
 
 
 @_jit
-def _velocity_product(lk, V, tmp, y):
+def _velocity_product(lk: F64, V: F64, tmp: F64, y: F64) -> None:
     """y = v x* (I v), the gyroscopic part of the link's inertial wrench (V = (v, w)); tmp: 6 scratch."""
     _inertia(lk, V, tmp)
     v0, v1, v2, w0, w1, w2 = V[0], V[1], V[2], V[3], V[4], V[5]
@@ -233,7 +239,7 @@ def _velocity_product(lk, V, tmp, y):
 
 
 @_jit
-def _joint_motion(V, qd, A):
+def _joint_motion(V: F64, qd: float, A: F64) -> None:
     """A += v_i x S dq_i (S = +z angular): the velocity-product acceleration of joint i."""
     A[0] += V[1] * qd
     A[1] -= V[0] * qd
@@ -242,7 +248,7 @@ def _joint_motion(V, qd, A):
 
 
 @_jit
-def _sensor_to_c(sr, x, y):
+def _sensor_to_c(sr: F64, x: F64, y: F64) -> None:
     """y = A_s(j) x: a sensor wrench (sensor frame, about S_j) as a wrench about C, body frame."""
     f0 = sr[0] * x[0] + sr[1] * x[1] + sr[2] * x[2]
     f1 = sr[3] * x[0] + sr[4] * x[1] + sr[5] * x[2]
@@ -260,7 +266,7 @@ def _sensor_to_c(sr, x, y):
 
 
 @_jit
-def _c_to_sensor(sr, x, y):
+def _c_to_sensor(sr: F64, x: F64, y: F64) -> None:
     """The inverse of :func:`_sensor_to_c`: a wrench about C (body frame) in the sensor frame about S_j."""
     f0, f1, f2 = x[0], x[1], x[2]
     r0, r1, r2 = sr[9], sr[10], sr[11]
@@ -278,7 +284,7 @@ def _c_to_sensor(sr, x, y):
 # --- least squares ---------------------------------------------------------------------------------
 
 @_jit
-def _lstsq(Bt, m, n, b, Vm, h, rcond, x, off):
+def _lstsq(Bt: F64, m: int, n: int, b: F64, Vm: F64, h: F64, rcond: float, x: F64, off: int) -> None:
     """x[off:off + n] = the minimum-norm least-squares solution of ``B x = b`` (what
     ``np.linalg.lstsq(B, b, rcond)`` computes), B (m, n).
 
@@ -360,7 +366,7 @@ def _lstsq(Bt, m, n, b, Vm, h, rcond, x, off):
 
 
 @_jit
-def _jacobi_min_norm(Bt, m, n, b, Vm, rcond, x, off):
+def _jacobi_min_norm(Bt: F64, m: int, n: int, b: F64, Vm: F64, rcond: float, x: F64, off: int) -> None:
     """The minimum-norm least-squares solution by a one-sided Jacobi SVD (Hestenes; Demmel,
     Applied Numerical Linear Algebra, alg. 5.13): plane rotations of column pairs, in a fixed order,
     until every pair is orthogonal to ``m eps``; then ``B V = U S`` and
@@ -448,7 +454,7 @@ def lstsq_min_norm(a: np.ndarray, b: np.ndarray, rcond: float | None = None, qr:
 # --- the epoch -------------------------------------------------------------------------------------
 
 @_jit
-def _chain_start(a_s, dw_s, g, A, G):
+def _chain_start(a_s: F64, dw_s: F64, g: F64, A: F64, G: F64) -> None:
     """A = the base's spatial acceleration at C (a_s, dw_s); G = the arm's sensor wrench at C."""
     for k in range(3):
         A[k] = a_s[k]
@@ -458,8 +464,9 @@ def _chain_start(a_s, dw_s, g, A, G):
 
 
 @_jit
-def _epoch(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, w_s,
-           simp, ddq, full, a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec):
+def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64, dq: F64,
+           ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64, arm_w: F64,
+           gc: F64, per: F64, U: F64, FU: F64, W: F64, Bt: F64, Vm: F64, cs: F64, vec: F64) -> None:
     """One epoch into the output rows; the trailing arrays are scratch (see :func:`_scratch`)."""
     p = arm_n.shape[0]
     # the arms' wrench on the spacecraft and the base motion
@@ -564,7 +571,7 @@ def _epoch(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, w_s,
 
 
 @_jit
-def _scratch(p, L):
+def _scratch(p: int, L: int) -> tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]:
     # one allocation, carved into the views _epoch uses
     sizes = (p * 6, L * 18, L * 6, L * L * 6, (L + 1) * 6, L * 6, L * L, L * 2, 42)
     total = 0
@@ -593,7 +600,8 @@ def _scratch(p, L):
 
 
 @_jit
-def _check_shapes(arm_n, arm_col, link, wt, nj, q, dq, ft, thr, w_s):
+def _check_shapes(arm_n: I64, arm_col: I64, link: F64, wt: F64, nj: int, q: F64, dq: F64, ft: F64, thr: F64,
+                  w_s: F64) -> None:
     p = arm_n.shape[0]
     if q.shape[-1] != nj or dq.shape[-1] != nj:
         raise ValueError("q and dq must have n_joints columns")
@@ -605,8 +613,9 @@ def _check_shapes(arm_n, arm_col, link, wt, nj, q, dq, ft, thr, w_s):
 
 
 @_jit
-def epoch_kernel(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, w_s,
-                 simp, ddq, full, a_s, dw_s, arm_w):
+def epoch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
+                 dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
+                 arm_w: F64) -> None:
     """One epoch: inputs ``q``, ``dq`` (n_joints,), ``ft`` (p, 6), ``thr`` (6,), ``w_s`` (3,);
     writes ``simp``, ``ddq``, ``full`` (n_joints,), ``a_s``, ``dw_s`` (3,), ``arm_w`` (6,)."""
     nj = simp.shape[0]
@@ -619,8 +628,9 @@ def epoch_kernel(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, 
 
 
 @_jit
-def batch_kernel(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, w_s,
-                 simp, ddq, full, a_s, dw_s, arm_w):
+def batch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
+                 dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
+                 arm_w: F64) -> None:
     """B epochs (leading axis of every input and output), each exactly as :func:`epoch_kernel`."""
     B = q.shape[0]
     nj = simp.shape[1]
@@ -645,7 +655,8 @@ class EpochKernel:
     count as zero (``None``: ``eps * max(6, n)``, as ``np.linalg.lstsq(rcond=None)``).
     """
 
-    def __init__(self, model: EstimatorModel, weights=WEIGHTS, rcond: float | None = None):
+    def __init__(self, model: EstimatorModel, weights: Sequence[float] | np.ndarray = WEIGHTS,
+                 rcond: float | None = None):
         self.model = model
         self.arrays = pack(model)
         wt = np.array(weights, dtype=float)
@@ -657,9 +668,12 @@ class EpochKernel:
         self.n_joints, self.n_arms = model.n_joints, model.n_arms
         # private writeable copies: numba's dispatcher types read-only arrays on a slower path
         # (~0.05 us each per call) and compiles a second specialization for them
-        self._args = (*(a.copy() for a in self.arrays), wt.copy(), self.rcond)
+        a = self.arrays
+        self._args = (a.arm_n.copy(), a.arm_col.copy(), a.sensor.copy(), a.link.copy(), a.base.copy(), wt.copy(),
+                      self.rcond)
 
-    def epoch(self, q: np.ndarray, dq: np.ndarray, ft: np.ndarray, thr: np.ndarray, w_s: np.ndarray, out=None):
+    def epoch(self, q: np.ndarray, dq: np.ndarray, ft: np.ndarray, thr: np.ndarray, w_s: np.ndarray,
+              out: Outputs | None = None) -> Outputs:
         """``(simp, ddq, full, a_s, dw_s, arm_w)`` for one epoch.
 
         Inputs float64 arrays: ``q`` (rad), ``dq`` (rad/s) (n_joints,); ``ft`` (p, 6) sensor
@@ -675,12 +689,12 @@ class EpochKernel:
         epoch_kernel(*self._args, q, dq, ft, thr, w_s, *out)
         return out
 
-    def outputs(self) -> tuple[np.ndarray, ...]:
+    def outputs(self) -> Outputs:
         """Output arrays for ``epoch(..., out=)``."""
         nj = self.n_joints
         return (np.empty(nj), np.empty(nj), np.empty(nj), np.empty(3), np.empty(3), np.empty(6))
 
-    def batch(self, q, dq, ft, thr, w_s):
+    def batch(self, q: np.ndarray, dq: np.ndarray, ft: np.ndarray, thr: np.ndarray, w_s: np.ndarray) -> Outputs:
         """:meth:`epoch` over a leading axis B: ``q``, ``dq`` (B, n_joints), ``ft`` (B, p, 6),
         ``thr`` (B, 6), ``w_s`` (B, 3); outputs with the same leading axis."""
         q, dq, ft, thr, w_s = (np.ascontiguousarray(x, dtype=np.float64) for x in (q, dq, ft, thr, w_s))

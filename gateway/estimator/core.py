@@ -33,8 +33,10 @@ valve-aided thruster filter).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from drivers import kernel, wire
@@ -46,8 +48,22 @@ from . import thruster_kernel as tk
 from .model import EstimatorModel, EstimatorSettingsError
 from .thrusters import ThrusterFilterSettings
 
+if TYPE_CHECKING:
+    from drivers.samples import Sample
+    from gateway.efforts import JointEfforts, ThrusterEffort
+
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 _inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always", nogil=True)
+
+# The kernels' arguments: views of one int64 and one float64 buffer (ViewLayout), in groups.
+I64 = npt.NDArray[np.int64]
+F64 = npt.NDArray[np.float64]
+Record = Any                    # a numba record view of a SAMPLE_DTYPE row: numpy's types cannot name its fields
+ChainScratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]     # chain_kernel._scratch
+Chain = tuple[I64, I64, F64, F64, F64, F64, F64, ChainScratch]        # chain_kernel._epoch's model, weights, rcond
+ThrusterArrays = tuple[F64, F64, F64, F64, F64, I64, F64, I64, I64, F64]  # CompiledThrusterFilter.state
+Scratch = tuple[F64, F64, F64]
+Views = tuple[I64, I64, I64, I64, I64, F64, F64, F64, F64, F64, Chain, ThrusterArrays, Scratch]
 
 # sample kinds and rows: the compiled drivers' events (drivers/kernel.py EVENT_DTYPE)
 WRENCH, JOINT, TORQUE_CMD, IMU, THRUSTER_CMD, VALVES = (kernel.WRENCH, kernel.JOINT, kernel.TORQUE, kernel.IMU,
@@ -121,13 +137,13 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
 # --- the compiled state machine -------------------------------------------------------------------
 
 @_inl
-def _grid(si, period, half, t):
-    c = si[_CENTER]
+def _grid(si: I64, period: int, half: int, t: int) -> int:
+    c: int = si[_CENTER]
     return c + ((t - c + half) // period) * period
 
 
 @_jit
-def _lock_phase(si, cfg, held):
+def _lock_phase(si: I64, cfg: I64, held: np.ndarray) -> None:
     """Place the grid: a boundary in the middle of the widest quiet gap between the held
     members' arrival phases. Depends only on the set of timestamps, not on their order. The
     caller then feeds the held samples again (:func:`_replay_held`)."""
@@ -174,7 +190,8 @@ def _lock_phase(si, cfg, held):
 
 
 @_jit
-def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend):
+def _add(si: I64, cfg: I64, held: np.ndarray, s: Record, ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64,
+         pend: np.ndarray) -> int:
     """Put one sample where it belongs. Returns how many of the first open epochs are ready to be
     computed (:func:`_compute_ready`), or -1 when the grid's phase can now be placed and the held
     samples fed again. (Only the arrays it needs: numba counts references of every array passed
@@ -267,7 +284,7 @@ def _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend):
 
 
 @_inl
-def _complete(cfg, ep_i, e):
+def _complete(cfg: I64, ep_i: I64, e: int) -> bool:
     p, nj = cfg[2], cfg[3]
     if ep_i[e, 0] == 0:
         return False
@@ -281,7 +298,7 @@ def _complete(cfg, ep_i, e):
 
 
 @_inl
-def _ready(si, cfg, touched, ep_i):
+def _ready(si: I64, cfg: I64, touched: int, ep_i: I64) -> int:
     # Every open epoch but ``touched`` was incomplete after its last change (complete ones are
     # computed at once), so the last complete one, if any, is ``touched``; beyond max_open the
     # oldest go anyway.
@@ -294,8 +311,9 @@ def _ready(si, cfg, touched, ep_i):
 
 
 @_jit
-def _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
-                   scratch):
+def _compute_ready(si: I64, cfg: I64, nready: int, ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64, pend: np.ndarray,
+                   out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64, chain: Chain,
+                   tf: ThrusterArrays, scratch: Scratch) -> None:
     """Compute the first ``nready`` open epochs in time order, in place (a computation reads only
     its own epoch's rows), then move the rest down."""
     n_open = si[_N_OPEN]
@@ -311,7 +329,8 @@ def _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, 
 
 
 @_jit
-def _apply_pending(si, cfg, lim, pend, jcmd, jcmd_i, thr_cmd, tf):
+def _apply_pending(si: I64, cfg: I64, lim: int, pend: np.ndarray, jcmd: F64, jcmd_i: I64, thr_cmd: F64,
+                   tf: ThrusterArrays) -> None:
     """Apply the slower-stream samples whose grid time is at most ``lim``, in arrival order."""
     period, half = cfg[0], cfg[1]
     n = si[_N_PEND]
@@ -349,7 +368,8 @@ def _apply_pending(si, cfg, lim, pend, jcmd, jcmd_i, thr_cmd, tf):
 
 
 @_jit
-def _compute(si, cfg, et, ei, eft, ej, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.ndarray, out: np.ndarray, jstate: F64,
+             jcmd: F64, jcmd_i: I64, thr_cmd: F64, chain: Chain, tf: ThrusterArrays, scratch: Scratch) -> None:
     _period, half, p, nj = cfg[0], cfg[1], cfg[2], cfg[3]
     t = et[0]
     if t > si[_LAST_CLOSED]:
@@ -464,37 +484,37 @@ def _compute(si, cfg, et, ei, eft, ej, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
 # offset and dims, ViewLayout).
 
 @_jit
-def _i1(I, lay, k):
+def _i1(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1]]
 
 
 @_jit
-def _i2(I, lay, k):
+def _i2(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
 @_jit
-def _f1(F, lay, k):
+def _f1(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1]]
 
 
 @_jit
-def _f2(F, lay, k):
+def _f2(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
 @_jit
-def _f3(F, lay, k):
+def _f3(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2] * lay[k, 3]].reshape((lay[k, 1], lay[k, 2], lay[k, 3]))
 
 
 @_jit
-def _views(I, F, lay):
+def _views(I: I64, F: F64, lay: I64) -> Views:
     si, cfg = _i1(I, lay, 0), _i1(I, lay, 1)
     ep_t, ep_i, jcmd_i = _i2(I, lay, 2), _i2(I, lay, 3), _i2(I, lay, 4)
     ep_ft, ep_j, jstate = _f3(F, lay, 5), _f3(F, lay, 6), _f2(F, lay, 7)
@@ -510,7 +530,9 @@ def _views(I, F, lay):
 
 
 @_inl
-def _feed_one(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf, scratch):
+def _feed_one(si: I64, cfg: I64, held: np.ndarray, s: Record, ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64,
+              pend: np.ndarray, out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64, chain: Chain,
+              tf: ThrusterArrays, scratch: Scratch) -> None:
     nready = _add(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend)
     if nready > 0:
         _compute_ready(si, cfg, nready, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
@@ -522,8 +544,9 @@ def _feed_one(si, cfg, held, s, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd
 
 
 @_jit
-def _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain, tf,
-                 scratch):
+def _replay_held(si: I64, cfg: I64, held: np.ndarray, ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64, pend: np.ndarray,
+                 out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64, chain: Chain,
+                 tf: ThrusterArrays, scratch: Scratch) -> None:
     n = si[_N_HELD]
     si[_N_HELD] = 0
     for k in range(n):                     # learning is over: none of these is held again
@@ -534,7 +557,8 @@ def _replay_held(si, cfg, held, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd
 
 
 @_jit
-def feed_kernel(I, F, lay, held, pend, samples, out):
+def feed_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, samples: np.ndarray,
+                out: np.ndarray) -> int:
     """Sample rows in arrival order; returns the number of effort rows written to ``out``."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
     si[_N_OUT] = 0
@@ -542,11 +566,12 @@ def feed_kernel(I, F, lay, held, pend, samples, out):
         si[_CAUSE] = k
         _feed_one(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
                   chain, tf, scratch)
-    return si[_N_OUT]
+    n_out: int = si[_N_OUT]
+    return n_out
 
 
 @_jit
-def flush_kernel(I, F, lay, held, pend, out):
+def flush_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, out: np.ndarray) -> int:
     """End of input: every waiting epoch computed with what it has; returns the rows written."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
     si[_N_OUT] = 0
@@ -557,7 +582,8 @@ def flush_kernel(I, F, lay, held, pend, out):
                      scratch)
     _compute_ready(si, cfg, si[_N_OPEN], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
                    tf, scratch)
-    return si[_N_OUT]
+    n_out: int = si[_N_OUT]
+    return n_out
 
 
 class ViewLayout:
@@ -571,6 +597,7 @@ class ViewLayout:
         self.F = np.zeros(max(nf, 1))
         self.lay = np.zeros((len(arrays), 4), dtype=np.int64)
         self.views: list[np.ndarray] = []
+        buf: np.ndarray
         oi = of = 0
         for k, a in enumerate(arrays):
             a = np.asarray(a)
@@ -650,12 +677,12 @@ class EstimatorCore:
         self._out = np.zeros(0, dtype=self.dtype)
         # flags -> published tuples: per arm the bits it reports, in the order of their sorted names
         common = list(range(_N_COMMON + 3 * p))
-        self._arm_bits = []
+        self._arm_bits: list[I64] = []
         for a, names in enumerate(self.arm_joints):
             bits = common + [_N_COMMON + 3 * p + 4 * self.joint_index[j] + k for j in names for k in range(4)]
             self._arm_bits.append(np.array(sorted(bits, key=lambda b: self.flag_names[b]), dtype=np.int64))
         self._thr_bits = np.array(sorted(common, key=lambda b: self.flag_names[b]), dtype=np.int64)
-        self._flag_cache: dict = {}
+        self._flag_cache: dict[tuple[int, bytes], tuple[str, ...]] = {}
         from drivers.frames import builder
         from gateway.efforts import JointEfforts, ThrusterEffort
 
@@ -711,13 +738,13 @@ class EstimatorCore:
                 self._flag_cache[key] = out
         return out
 
-    def efforts(self, rows: np.ndarray) -> list:
+    def efforts(self, rows: np.ndarray) -> list[JointEfforts | ThrusterEffort]:
         """The published objects of effort rows: per row one :class:`JointEfforts` per arm, then
         one :class:`ThrusterEffort`."""
         make_j, make_t = self._make_j, self._make_t
-        out = []
+        out: list[JointEfforts | ThrusterEffort] = []
         col = 0
-        spans = []
+        spans: list[tuple[str, tuple[str, ...], int, int, I64, int]] = []
         for a, names in enumerate(self.arm_joints):
             spans.append((self.arms[a], names, col, col + len(names), self._arm_bits[a], a))
             col += len(names)
@@ -744,7 +771,7 @@ class EstimatorCore:
         return out
 
 
-def sample_rows(samples, joint_index: dict[str, int], arm_index: dict[str, int]) -> np.ndarray:
+def sample_rows(samples: Sequence[Sample], joint_index: dict[str, int], arm_index: dict[str, int]) -> np.ndarray:
     """Driver samples (:mod:`drivers.samples`) -> :data:`SAMPLE_DTYPE` rows, in order. Torque
     commands of joints the model does not have are left out."""
     from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
@@ -753,31 +780,30 @@ def sample_rows(samples, joint_index: dict[str, int], arm_index: dict[str, int])
     n = 0
     for s in samples:
         r = rows[n]
-        cls = s.__class__
-        if cls is WrenchSample:
+        if type(s) is WrenchSample:
             r["kind"], r["device"] = WRENCH, arm_index[s.device]
             r["values"][:6] = (*s.force_n, *s.torque_nm)
             r["saturated"], r["status"] = s.saturated, s.status
-        elif cls is JointSample:
+        elif type(s) is JointSample:
             r["kind"], r["device"] = JOINT, joint_index[s.device]
             r["values"][:2] = (s.angle_rad, s.rate_rad_s)
             r["saturated"], r["status"] = s.saturated, s.status
-        elif cls is TorqueCommand:
+        elif type(s) is TorqueCommand:
             j = joint_index.get(s.device)
             if j is None:
                 continue
             r["kind"], r["device"] = TORQUE_CMD, j
             r["values"][0] = s.torque_nm
             r["saturated"] = s.saturated
-        elif cls is ImuSample:
+        elif type(s) is ImuSample:
             r["kind"] = IMU
             r["values"][:] = (*s.quat_wxyz, *s.rate_rad_s, *s.accel_m_s2)
             r["saturated"], r["status"] = s.saturated, s.status
-        elif cls is ThrusterCommand:
+        elif type(s) is ThrusterCommand:
             r["kind"] = THRUSTER_CMD
             r["values"][:6] = (*s.force_n, *s.moment_nm)
             r["valves"], r["saturated"] = s.valves, s.saturated
-        elif cls is ValveCommand:
+        elif type(s) is ValveCommand:
             r["kind"], r["valves"] = VALVES, s.valves
         else:
             continue

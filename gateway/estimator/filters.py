@@ -22,6 +22,7 @@ Everything is in the body frame; units in the docstrings. No I/O.
 from __future__ import annotations
 
 import math
+from typing import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,7 +50,8 @@ def lowpass_differentiator_coefficients(cutoff_hz: float, rate_hz: float,
     if not 0.0 < cutoff_hz < rate_hz / 2.0:
         raise ValueError(f"cutoff {cutoff_hz} Hz must be in (0, {rate_hz / 2}) Hz")
     wa = 2.0 * rate_hz * math.tan(math.pi * cutoff_hz / rate_hz)
-    return signal.bilinear([wa * wa, 0.0], [1.0, 2.0 * zeta * wa, wa * wa], fs=rate_hz)
+    ba: tuple[np.ndarray, np.ndarray] = signal.bilinear([wa * wa, 0.0], [1.0, 2.0 * zeta * wa, wa * wa], fs=rate_hz)
+    return ba
 
 
 class LowPassDifferentiator:
@@ -85,7 +87,7 @@ class LowPassDifferentiator:
         if not self._primed:
             self.reset(x)
         b, a, z = self.b, self.a, self._z
-        y = b[0] * x + z[0]
+        y: np.ndarray = b[0] * x + z[0]
         z[0] = b[1] * x - a[1] * y + z[1]
         z[1] = b[2] * x - a[2] * y
         return y
@@ -97,6 +99,7 @@ def lowpass_derivative(x: np.ndarray, rate_hz: float, cutoff_hz: float,
     x = np.asarray(x, dtype=float)
     b, a = lowpass_differentiator_coefficients(cutoff_hz, rate_hz, zeta)
     zi = signal.lfilter_zi(b, a).reshape(2, *([1] * (x.ndim - 1))) * x[0]
+    y: np.ndarray
     y, _ = signal.lfilter(b, a, x, axis=0, zi=zi)
     return y
 
@@ -104,8 +107,9 @@ def lowpass_derivative(x: np.ndarray, rate_hz: float, cutoff_hz: float,
 def savgol_derivative(x: np.ndarray, rate_hz: float, window_s: float, polyorder: int = 2) -> np.ndarray:
     """Savitzky-Golay derivative along axis 0, (input unit)/s. OFFLINE: centred, uses the future."""
     n = max(polyorder + 2, int(round(window_s * rate_hz)) | 1)
-    return signal.savgol_filter(np.asarray(x, dtype=float), n, polyorder, deriv=1,
-                                delta=1.0 / rate_hz, axis=0, mode="interp")
+    dx: np.ndarray = signal.savgol_filter(np.asarray(x, dtype=float), n, polyorder, deriv=1,
+                                          delta=1.0 / rate_hz, axis=0, mode="interp")
+    return dx
 
 
 # --- Kalman filters ----------------------------------------------------------------------------
@@ -270,8 +274,9 @@ def rotation_scenario(inertia: np.ndarray = PAPER_INERTIA, rate_hz: float = 1000
     f_arm = rng.uniform(0.1, 0.3, size=3)
     ph_arm = rng.uniform(0, 2 * np.pi, size=3)
 
-    def arms(tt):
-        return arm_nm * np.sin(2 * np.pi * f_arm * np.asarray(tt)[..., None] + ph_arm)
+    def arms(tt: float | np.ndarray) -> np.ndarray:
+        moment: np.ndarray = arm_nm * np.sin(2 * np.pi * f_arm * np.asarray(tt)[..., None] + ph_arm)
+        return moment
 
     tau_thr = levels[np.minimum((t // step_period_s).astype(int), n_steps - 1)]
     w = np.empty((N, 3))
@@ -283,8 +288,9 @@ def rotation_scenario(inertia: np.ndarray = PAPER_INERTIA, rate_hz: float = 1000
             continue
         lev = levels[k]
 
-        def rhs(tt, ww, lev=lev):
-            return I_inv @ (lev + arms(tt) - _cross(ww, inertia @ ww))
+        def rhs(tt: float, ww: np.ndarray, lev: np.ndarray = lev) -> np.ndarray:
+            dww: np.ndarray = I_inv @ (lev + arms(tt) - _cross(ww, inertia @ ww))
+            return dww
 
         sol = integrate.solve_ivp(rhs, (lo, hi), w_now, method="DOP853", rtol=1e-11, atol=1e-14,
                                   dense_output=True)
@@ -316,7 +322,8 @@ class TradeoffRow:
 
 def _moment_from_dw(sc: RotationScenario, w: np.ndarray, dw: np.ndarray) -> np.ndarray:
     # METHOD section 1, arms' part moved to the left: tau_thr = I dw + w x I w - tau_arms
-    return dw @ sc.inertia.T + _cross(w, w @ sc.inertia.T) - sc.tau_arms
+    tau_thr: np.ndarray = dw @ sc.inertia.T + _cross(w, w @ sc.inertia.T) - sc.tau_arms
+    return tau_thr
 
 
 def _rise90(sc: RotationScenario, est: np.ndarray) -> float:
@@ -333,8 +340,10 @@ def _rise90(sc: RotationScenario, est: np.ndarray) -> float:
     return float(np.mean(times)) if times else math.inf
 
 
-def measure_tradeoff(sc: RotationScenario | None = None, cutoffs_hz=(0.5, 1.0, 2.0, 5.0, 20.0),
-                     savgol_windows_s=(0.1, 0.5), torque_walks=(10.0, 30.0, 100.0, 300.0),
+def measure_tradeoff(sc: RotationScenario | None = None,
+                     cutoffs_hz: Sequence[float] = (0.5, 1.0, 2.0, 5.0, 20.0),
+                     savgol_windows_s: Sequence[float] = (0.1, 0.5),
+                     torque_walks: Sequence[float] = (10.0, 30.0, 100.0, 300.0),
                      gyro_sigma: float | None = None, warmup_s: float = 1.0) -> list[TradeoffRow]:
     """Noise against lag of every thruster-moment estimator here on one synthetic scenario.
 
@@ -348,9 +357,9 @@ def measure_tradeoff(sc: RotationScenario | None = None, cutoffs_hz=(0.5, 1.0, 2
         sc = rotation_scenario(gyro_sigma=gyro_sigma)
     fs = sc.rate_hz
     k0 = int(warmup_s * fs)
-    rows = []
+    rows: list[TradeoffRow] = []
 
-    def row(method, setting, estimate, causal=True):
+    def row(method: str, setting: str, estimate: Callable[[np.ndarray], np.ndarray], causal: bool = True) -> None:
         noisy, clean = estimate(sc.gyro), estimate(sc.w)
         rows.append(TradeoffRow(
             method, setting,
@@ -359,19 +368,21 @@ def measure_tradeoff(sc: RotationScenario | None = None, cutoffs_hz=(0.5, 1.0, 2
             rms_error_nm=float(np.sqrt(np.mean((noisy[k0:] - sc.tau_thr[k0:]) ** 2))),
             causal=causal))
 
-    def raw(g):
+    def raw(g: np.ndarray) -> np.ndarray:
         dw = np.vstack([np.zeros((1, 3)), np.diff(g, axis=0) * fs])
         return _moment_from_dw(sc, g, dw)
 
     row("raw difference", "1 sample", raw)
     for fc in cutoffs_hz:
-        row("low-pass differentiator", f"fc = {fc:g} Hz",
-            lambda g, fc=fc: _moment_from_dw(sc, g, lowpass_derivative(g, fs, fc)))
+        def lowpass(g: np.ndarray, fc: float = fc) -> np.ndarray:
+            return _moment_from_dw(sc, g, lowpass_derivative(g, fs, fc))
+        row("low-pass differentiator", f"fc = {fc:g} Hz", lowpass)
     for win in savgol_windows_s:
-        row("Savitzky-Golay (offline)", f"window {win:g} s, order 2",
-            lambda g, win=win: _moment_from_dw(sc, g, savgol_derivative(g, fs, win)), causal=False)
+        def savgol(g: np.ndarray, win: float = win) -> np.ndarray:
+            return _moment_from_dw(sc, g, savgol_derivative(g, fs, win))
+        row("Savitzky-Golay (offline)", f"window {win:g} s, order 2", savgol, causal=False)
     for q in torque_walks:
-        def kf(g, q=q):
+        def kf(g: np.ndarray, q: float = q) -> np.ndarray:
             f = RotationalKF(sc.inertia, fs, gyro_sigma=gyro_sigma, torque_walk=q)
             return f.run(g, sc.tau_arms)[1]
         row("rotational KF", f"walk {q:g} N m/sqrt(s)", kf)

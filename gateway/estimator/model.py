@@ -205,7 +205,7 @@ class EstimatorData:
 from numpy.linalg import _umath_linalg as _ul  # noqa: E402
 
 
-def _errstate():
+def _errstate() -> np.errstate:
     return np.errstate(invalid="raise", over="ignore", divide="ignore", under="ignore")
 
 
@@ -213,6 +213,7 @@ def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.linalg.solve(a, b)`` for float64 arrays, ``a`` (m, m), ``b`` (m,) or (m, k)."""
     try:
         with _errstate():
-            return (_ul.solve1 if b.ndim == 1 else _ul.solve)(a, b, signature="dd->d")
+            x: np.ndarray = (_ul.solve1 if b.ndim == 1 else _ul.solve)(a, b, signature="dd->d")
+            return x
     except FloatingPointError:
         return np.linalg.solve(a, b)

@@ -69,12 +69,18 @@ class ThrusterFilterSettings:
                 raise EstimatorSettingsError(f"{name} must be a number > 0, got {value!r}")
 
 
+_Step = tuple[int, np.ndarray, np.ndarray]
+"""One recorded step: ``(t_ns, arm wrench (6,), valves (n,))``."""
+
+
 class ThrusterFilter:
     """Kalman filter on the per-valve wrenches ``W`` ``(n, 6)`` plus 6 bias states."""
 
     def __init__(self, model: EstimatorModel, layout: ThrusterLayout, *, dt: float = 1e-3, imu_steps: int = 2,
                  settings: ThrusterFilterSettings | None = None):
         s = settings or ThrusterFilterSettings()
+        if imu_steps < 1:
+            raise EstimatorSettingsError(f"imu_steps must be at least 1 (steps per IMU sample), got {imu_steps}")
         self.model, self.layout, self.settings = model, layout, s
         self.n = n = layout.n
         self.dt, self.imu_steps = dt, imu_steps
@@ -104,13 +110,13 @@ class ThrusterFilter:
         self.r_mom = (np.sqrt(2.0) * s.gyro_sigma / T * np.diag(I)) ** 2
         # gyro-difference weights c_u over the 2n-1 steps before the end of interval k (oldest first)
         nn = imu_steps
-        c = []
+        c: list[float] = []
         for u in range(-2 * nn + 1, 0):            # u relative to the last step of I_k (0)
             now = sum(1 for s_ in range(-nn + 1, 1) if s_ > u)
             prev = sum(1 for s_ in range(-2 * nn + 1, -nn + 1) if s_ > u)
             c.append((now - prev) / nn ** 2)
         self.c = np.array(c)                        # length 2n - 1, sum 1
-        self._hist: deque = deque(maxlen=2 * nn + 2)   # (t_ns, arm wrench (6,), valves (n,))
+        self._hist: deque[_Step] = deque(maxlen=2 * nn + 2)
         self._prev_gyro: tuple[int, np.ndarray] | None = None
         self._last_update_ns: int | None = None
         self.updates = 0
@@ -153,22 +159,24 @@ class ThrusterFilter:
         W = self._W
         if W.base is not self.x:                    # x replaced from outside: a fresh view
             W = self._W = self.W
-        return valves @ W
+        wrench: np.ndarray = valves @ W
+        return wrench
 
     def efficiency(self) -> np.ndarray:
         """Per thruster: estimated thrust along the nominal direction / nominal thrust."""
-        return np.einsum("ij,ij->i", self.W[:, :3], self.layout.dir) / self.layout.max_n
+        eff: np.ndarray = np.einsum("ij,ij->i", self.W[:, :3], self.layout.dir) / self.layout.max_n
+        return eff
 
     # -- inputs ----------------------------------------------------------------------------------
     def push_epoch(self, t_ns: int, arm_wrench: np.ndarray, valves: np.ndarray) -> None:
         """Record one step: the arms' wrench on the spacecraft and the valves open during it."""
         self._hist.append((t_ns, arm_wrench, valves))
 
-    def _steps(self, t_end_ns: float, count: int) -> list | None:
+    def _steps(self, t_end_ns: float, count: int) -> list[_Step] | None:
         """The last ``count`` recorded steps ending at ``t_end_ns`` (oldest first), or None if any is missing."""
         step = self.dt * 1e9
         half = 0.5 * step
-        out = []
+        out: list[_Step] = []
         hist = self._hist
         for j in range(count - 1, -1, -1):
             t = t_end_ns - j * step
@@ -220,6 +228,8 @@ class ThrusterFilter:
                 s0, s1, s2 = k0, k1, k2
             else:
                 s0, s1, s2 = s0 + k0, s1 + k1, s2 + k2
+        if s0 is None or s1 is None or s2 is None:          # no step: cannot be, imu_steps >= 1 (__init__)
+            raise EstimatorSettingsError(f"imu_steps must be at least 1, got {nn}")
         a0, a1, a2 = a.tolist()
         y[:3] = (a0 - s0 / nn, a1 - s1 / nn, a2 - s2 / nn)
         V = np.array([e[2] for e in cur])

@@ -48,7 +48,8 @@ def _fill_A_tau(model: EstimatorModel, data: EstimatorData) -> None:
 
 
 def _apply(model: EstimatorModel, A_tau: np.ndarray, ft: np.ndarray) -> np.ndarray:
-    return (A_tau * np.asarray(ft, dtype=float)[model.joint_arm]).sum(axis=1)
+    tau: np.ndarray = (A_tau * np.asarray(ft, dtype=float)[model.joint_arm]).sum(axis=1)
+    return tau
 
 
 def joint_torques_simplified(model: EstimatorModel, data: EstimatorData, q: np.ndarray,
@@ -61,7 +62,8 @@ def joint_torques_simplified(model: EstimatorModel, data: EstimatorData, q: np.n
     return _apply(model, joint_torque_matrix(model, data, q), ft)
 
 
-def _rnea(model: EstimatorModel, data: EstimatorData, q, dq, ddq, a_s, w_s, dw_s) -> np.ndarray:
+def _rnea(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
+          a_s: np.ndarray, w_s: np.ndarray, dw_s: np.ndarray) -> np.ndarray:
     # Forces do not depend on the base's linear velocity (zero gravity, Galilean invariance) nor on
     # its pose: put the base at the origin, at rest in translation. Then Pinocchio's spatial base
     # acceleration equals the classical a_s.
@@ -72,7 +74,7 @@ def _rnea(model: EstimatorModel, data: EstimatorData, q, dq, ddq, a_s, w_s, dw_s
     data.a[:3] = a_s
     data.a[3:6] = dw_s
     data.a[6:] = ddq
-    tau = pin.rnea(pm, pd, data.q, data.v, data.a)
+    tau: np.ndarray = pin.rnea(pm, pd, data.q, data.v, data.a)
     pin.forwardKinematics(pm, pd, data.q)          # oMi for A_tau; does not touch data.f
     _fill_A_tau(model, data)
     return tau
@@ -97,7 +99,8 @@ def bias_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: 
     ``w_model`` is the sensor wrench the model predicts: the distal links cancel.
     """
     tau_m = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)
-    return _apply(model, data.A_tau, _model_sensor_wrenches(model, data)) - tau_m[6:]
+    h: np.ndarray = _apply(model, data.A_tau, _model_sensor_wrenches(model, data)) - tau_m[6:]
+    return h
 
 
 def joint_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray,
@@ -111,7 +114,8 @@ def joint_torques(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq:
     """
     tau_m = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)
     w_model = _model_sensor_wrenches(model, data)
-    return tau_m[6:] + _apply(model, data.A_tau, np.asarray(ft, dtype=float) - w_model)
+    tau: np.ndarray = tau_m[6:] + _apply(model, data.A_tau, np.asarray(ft, dtype=float) - w_model)
+    return tau
 
 
 def joint_accelerations_from_ft(model: EstimatorModel, data: EstimatorData, q: np.ndarray, dq: np.ndarray,

@@ -24,7 +24,7 @@ def thruster_wrench(model: EstimatorModel, ft: np.ndarray, a_s: np.ndarray, w_s:
     """
     ft = np.asarray(ft, dtype=float)
     lead = ft.shape[:-2]
-    out = ft.reshape(*lead, -1) @ model.A_s_all.T
+    out: np.ndarray = ft.reshape(*lead, -1) @ model.A_s_all.T
     out[..., :3] += model.mass_s * np.asarray(a_s)
     out[..., 3:] += spacecraft_inertial_moment(model, w_s, dw_s)
     return out
@@ -33,7 +33,8 @@ def thruster_wrench(model: EstimatorModel, ft: np.ndarray, a_s: np.ndarray, w_s:
 def spacecraft_inertial_moment(model: EstimatorModel, w_s: np.ndarray, dw_s: np.ndarray) -> np.ndarray:
     """``I_s dw_s + w_s x (I_s w_s)``, N m about C, body frame (the spacecraft alone)."""
     w_s = np.asarray(w_s, dtype=float)
-    return np.asarray(dw_s) @ model.inertia_s.T + cross(w_s, w_s @ model.inertia_s.T)
+    moment: np.ndarray = np.asarray(dw_s) @ model.inertia_s.T + cross(w_s, w_s @ model.inertia_s.T)
+    return moment
 
 
 def arm_reaction(model: EstimatorModel, ft: np.ndarray) -> np.ndarray:
@@ -43,7 +44,8 @@ def arm_reaction(model: EstimatorModel, ft: np.ndarray) -> np.ndarray:
     (``filters.RotationalKF``, ``filters.TranslationalKF``).
     """
     ft = np.asarray(ft, dtype=float)
-    return -(ft.reshape(*ft.shape[:-2], -1) @ model.A_s_all.T)
+    reaction: np.ndarray = -(ft.reshape(*ft.shape[:-2], -1) @ model.A_s_all.T)
+    return reaction
 
 
 def imu_to_body(model: EstimatorModel, accel_imu: np.ndarray, rate_imu: np.ndarray,
@@ -77,4 +79,5 @@ def body_to_inertial(model: EstimatorModel, quat_wxyz: np.ndarray) -> np.ndarray
         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
     ], -2)
-    return R_ii @ model.R_imu.T
+    R_bi: np.ndarray = R_ii @ model.R_imu.T
+    return R_bi
