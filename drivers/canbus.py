@@ -158,15 +158,7 @@ class BusOptions:
 
     def check(self, fd: bool) -> None:
         if self.data_bitrate is not None and not fd:
-            raise BusOptionsError("--data-bitrate is the CAN FD data phase: give --fd too")
-
-
-def check_interface(args: argparse.Namespace) -> None:
-    """The bus flags mean nothing without a bus: one line (a ValueError: exit status 2)."""
-    if not getattr(args, "interface", None) and (getattr(args, "bitrate", None) is not None
-                                                 or getattr(args, "data_bitrate", None) is not None
-                                                 or getattr(args, "bus_kwarg", None)):
-        raise BusOptionsError("--bitrate, --data-bitrate and --bus-kwarg are for the CAN buses: give --interface")
+            raise BusOptionsError("a data bit rate is the CAN FD data phase: the buses must run CAN FD")
 
 
 def open_bus(interface: str, channel: str, options: BusOptions | None = None, *, fd: bool = False,

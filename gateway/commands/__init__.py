@@ -29,6 +29,16 @@ RT_PRIORITY_HELP = ("run at SCHED_FIFO priority N (1-99; root or CAP_SYS_NICE), 
                     "went out; docs/firmware.md)")
 
 
+def check_interface(args) -> None:
+    """The bus flags mean nothing without a bus: one line, exit status 2."""
+    from gateway.cli import UserError
+
+    if not getattr(args, "interface", None) and (getattr(args, "bitrate", None) is not None
+                                                 or getattr(args, "data_bitrate", None) is not None
+                                                 or getattr(args, "bus_kwarg", None)):
+        raise UserError("--bitrate, --data-bitrate and --bus-kwarg are for the CAN buses: give --interface")
+
+
 def check_rt_priority(n: int) -> None:
     """A ``--rt-priority`` value: 0 (off) or 1-99, else a one-line UserError."""
     if n and not 1 <= n <= 99:

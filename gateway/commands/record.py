@@ -63,11 +63,14 @@ class Recording:
     Given open buses (logical name -> ``can.BusABC``) and/or an open zenoh session; owns only
     the notifiers and the subscriber it creates. A context manager; ``close()`` twice is fine.
     Nothing is lost silently: frames and samples the recorder refuses are counted in
-    ``refused``, samples it cannot type in ``rejected`` (by reason).
+    ``refused``, samples it cannot type in ``rejected`` (by reason). With ``robot`` (a
+    :class:`robot_description.Robot`), its IMU and joint samples also make the frame tree on
+    ``/tf`` and the URDF on ``/robot_description`` for Foxglove's 3D panel
+    (:class:`gateway.foxglove.TransformWriter`).
     """
 
     def __init__(self, recorder, buses: Mapping[str, Any] | None = None, session=None,
-                 keyexpr: str | None = None):
+                 keyexpr: str | None = None, robot=None):
         if session is not None and not keyexpr:
             raise ValueError("a zenoh session needs a key expression")
         self.recorder = recorder
@@ -84,6 +87,11 @@ class Recording:
         self._closed = False
         self._declared = False
         self._log_declared = False          # the foxglove.Log topic of alerts
+        self._tf = None                     # robot given: /tf and /robot_description from its samples
+        if robot is not None:
+            from gateway.foxglove import TransformWriter
+
+            self._tf = TransformWriter(recorder, robot)
 
     def start(self) -> "Recording":
         import can
@@ -132,6 +140,7 @@ class Recording:
 
     def on_payload(self, key: str, payload: bytes) -> None:
         """Record one zenoh payload published on ``key``."""
+        from drivers.samples import ImuSample, JointSample
         from gateway import codec
         from gateway.efforts import Alert
 
@@ -147,6 +156,9 @@ class Recording:
             return
         if ok and isinstance(obj, Alert):          # also as a foxglove.Log line (Foxglove's Log panel)
             ok = self._log_alert(obj)
+        elif ok and self._tf is not None and isinstance(obj, (ImuSample, JointSample)):
+            with self._lock:                       # the robot's frame tree for Foxglove's 3D panel
+                ok = self._tf.sample(obj)
         with self._lock:
             if ok:
                 self.samples[type(obj).__name__] += 1
@@ -244,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
     _positive("--split-duration", args.split_duration)
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
-    from drivers.canbus import check_interface
+    from gateway.commands import check_interface
 
     check_interface(args)
     if args.interface and not args.channel:
@@ -299,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
                 from gateway.zenoh_config import config_from_args
 
                 session = stack.enter_context(zenoh.open(config_from_args(args)))
-            recording = stack.enter_context(Recording(rec, buses, session, keyexpr))
+            recording = stack.enter_context(Recording(rec, buses, session, keyexpr, robot=robot))
             what = ", ".join([f"CAN {b}={c}" for b, c in chans.items()]
                              + ([f"zenoh {keyexpr}"] if keyexpr else []))
             print(f"bsc record: robot {robot.name} -> {out}: {what}", flush=True)

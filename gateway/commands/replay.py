@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--interface needs --channel PREFIX or BUS=CHANNEL")
     if args.channel and not args.interface:
         raise UserError("--channel needs --interface")
-    from drivers.canbus import check_interface
+    from gateway.commands import check_interface
 
     check_interface(args)
     can_ids = parse_can_ids(args.can_id) if args.can_id else None
