@@ -1,7 +1,8 @@
 """The house's checks, as the test suite runs them: the layering of the tree as import-linter
 checks it (contracts in pyproject.toml: the product (drivers, gateway) never imports the
 simulator or the harness, the drivers never the gateway, the simulator never the gateway; a
-deployment beside a real robot runs the product alone), and ruff's lint (pyproject.toml)."""
+deployment beside a real robot runs the product alone), ruff's lint, and mypy's strict types on the
+drivers and the estimator (all three configured in pyproject.toml)."""
 from __future__ import annotations
 
 import shutil
@@ -49,3 +50,18 @@ def test_ruff_would_catch_an_unused_import(tmp_path):
     bad.write_text("import os\n")
     out = tool("ruff", "check", "--no-cache", "--config", str(ROOT / "pyproject.toml"), str(bad))
     assert out.returncode == 1 and "F401" in out.stdout, out.stdout
+
+
+def test_mypy_strict_finds_nothing():
+    """mypy --strict on the files [tool.mypy] names (the drivers and the estimator)."""
+    out = tool("mypy")
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-1000:]
+
+
+def test_mypy_would_catch_a_type_error(tmp_path):
+    """The check can fail: the same configuration on a file with an untyped def and a wrong return type."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("def untyped(x):\n    return x\n\n\ndef one() -> int:\n    return 'one'\n")
+    out = tool("mypy", "--config-file", str(ROOT / "pyproject.toml"), str(bad))
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "[no-untyped-def]" in out.stdout and "[return-value]" in out.stdout, out.stdout
