@@ -158,7 +158,7 @@ class BusOptions:
 
     def check(self, fd: bool) -> None:
         if self.data_bitrate is not None and not fd:
-            raise BusOptionsError("a data bit rate is the CAN FD data phase: the buses must run CAN FD")
+            raise BusOptionsError("a data bit rate is the CAN FD data phase: the buses must run CAN FD", option="fd")
 
 
 def open_bus(interface: str, channel: str, options: BusOptions | None = None, *, fd: bool = False,

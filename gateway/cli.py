@@ -82,7 +82,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 # a library error's ``option`` (gateway.errors) -> the flag that sets it, on the commands that have it
 OPTION_FLAGS = {"robot": "--robot", "start": "--start", "duration": "--duration", "rate": "--rate",
                 "can_ids": "--can-id", "channels": "--channel", "topics": "--topic", "check": "--check",
-                "bus_map": "--bus"}
+                "bus_map": "--bus", "fd": "--fd"}
 
 
 def _load(module: str):

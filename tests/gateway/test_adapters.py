@@ -153,7 +153,7 @@ def test_every_command_that_opens_a_bus_takes_the_flags(plugin, session, tmp_pat
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--data-bitrate", "2M"], "give --fd"),
+    (["--data-bitrate", "2M"], "must run CAN FD [--fd]"),
     (["-b", "fast"], "a bit rate such as"),
     (["--bus-kwarg", "serial"], "KEY=VALUE"),
     (["--bus-kwarg", "channel=can0"], "--interface/--channel"),
