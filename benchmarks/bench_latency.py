@@ -17,9 +17,10 @@ Processes, all on this host:
 - **gateway**: :class:`gateway.bridge.GatewayService` built as ``bsc gateway`` builds it (python-can
   buses; the direct receive mode, where the one worker thread polls the buses' sockets and runs
   drivers + estimator, or ``--receive threads``: one notifier thread per bus feeding the worker; a
-  zenoh peer session listening on a loopback port; the heap frozen after start-up), with thin
-  timing wrappers around each bus's ``recv``, ``pipeline.feed`` and ``pipeline.emit`` (``--bare``:
-  only the ``emit`` one).
+  zenoh peer session listening on a loopback port; the heap frozen after start-up), timed by its own
+  hooks (:class:`gateway.bridge.Probe`: frames received, each batch fed, health ticks) and by probe
+  sinks around its outputs (``Session.add_sink``; ``--bare``: those only). The benchmark replaces
+  nothing of the service.
   ``--topology split`` measures the alternative: the gateway process runs the drivers only
   (``estimate=False``, samples published on zenoh) and an **estimator** process subscribes to the
   samples, runs :class:`gateway.estimator.core.EstimatorCore` in its zenoh callback (one sample
@@ -32,8 +33,8 @@ Clocks: CAN frames travel over python-can ``udp_multicast`` inside a private net
 (root needed; the namespace's loopback carries the multicast and the zenoh TCP, nothing leaves
 it). python-can stamps each datagram with the kernel's receive time (``SO_TIMESTAMPNS``,
 CLOCK_REALTIME): that is ``msg.timestamp``, the frame's arrival. An effort is emitted
-synchronously while the frame that completed its epoch is being fed (``GatewayService._frame_ns``
-holds that frame's stamp), so the completing frame's arrival is known at emit time; in the split
+synchronously while the frame that completed its epoch is being fed (its log time is that frame's
+stamp), so the completing frame's arrival is known at emit time; in the split
 topology it is the ``t_ns`` of the sample whose arrival completed the epoch (a sample's ``t_ns`` is
 its last frame's stamp). The subscriber stamps with CLOCK_REALTIME too (same host). Without root,
 the frames go over loopback UDP unicast instead (``--transport loopback``: a small ``can.BusABC``
@@ -300,7 +301,7 @@ def role_gateway(a) -> int:
     import zenoh
 
     from drivers.wire import WireMap
-    from gateway.bridge import GatewayService
+    from gateway.bridge import GatewayService, Probe
     from gateway.config import GatewayConfig
     from gateway.commands.gateway import freeze_heap
     from gateway.zenoh_config import make_config
@@ -360,69 +361,37 @@ def role_gateway(a) -> int:
             names = ["frame arrival", "received by a gateway thread", "pipeline starts on it", "effort emitted",
                      "put returned"]
 
-            def timed_recv(bus):
-                orig = bus.recv
+        class Ticks(Probe):                               # the gateway's own hooks: nothing replaced
+            def ticked(self, start, end):
+                ticks.append((start, end - start, -1))
 
-                def recv(timeout=None):
-                    m = orig(timeout)
-                    if m is not None:
-                        wakes[id(m)] = tn()
-                    return m
-                return recv
-
-            for bus in buses.values():
-                bus.recv = timed_recv(bus)
-            feed0 = gw.engine.feed_messages
-            rows0 = gw.engine.feed_frames
-
-            def feed(pairs):                              # threads receive: python-can messages
+        class Timing(Ticks):
+            def received(self, bus, stamps):
                 t = tn()
-                batch_wake.clear()
-                got = []
-                for _, msg in pairs:
-                    arr = round(msg.timestamp * 1e9)
-                    w = wakes.pop(id(msg), 0)
-                    batch_wake[arr] = w
-                    got.append((arr, w))
-                cur[2] = t
-                feed0(pairs)
-                end = tn()
-                for arr, w in got:                        # the worker's time, shared by the batch
-                    frames.append((arr, w, t, t + (end - t) // len(got)))
+                for arr in stamps:
+                    wakes[arr] = t
 
-            def feed_rows(rows, log_ns=None):             # direct receive: rows read from the sockets
-                t = tn()
+            def feeding(self, stamps):
+                t = cur[2] = tn()
                 batch_wake.clear()
-                arrs = rows["t_ns"].tolist()
-                for arr in arrs:                          # read and fed in one go: received = fed
-                    batch_wake[arr] = t
-                cur[2] = t
-                rows0(rows, log_ns)
-                end = tn()
-                for arr in arrs:
-                    frames.append((arr, t, t, t + (end - t) // len(arrs)))
+                for arr in stamps:
+                    batch_wake[arr] = wakes.pop(arr, t)
 
-            gw.engine.feed_messages = feed                # the worker binds them when it starts
-            gw.engine.feed_frames = feed_rows
+            def fed(self, stamps):
+                t, end = cur[2], tn()
+                for arr in stamps:                        # the worker's time, shared by the batch
+                    frames.append((arr, batch_wake.get(arr, t), t, t + (end - t) // len(stamps)))
+
         ticks: list[tuple[int, int, int]] = []
-        tick0 = gw.on_tick
-
-        def on_tick():
-            t = tn()
-            tick0()
-            ticks.append((t, tn() - t, -1))
-        gw.on_tick = on_tick
+        gw.probe = Ticks() if a.bare else Timing()
         stop = threading.Event()
         drain: dict = {}
         freeze_heap()                                     # as bsc gateway does before it runs
         with gw:
-            nots = getattr(gw, "_notifiers", [])
-            nots = [n[0] if isinstance(n, tuple) else n for n in (nots.values() if isinstance(nots, dict) else nots)]
+            tids = gw.thread_ids()
             _say({"ready": True, "ports": {n: getattr(b, "port", None) for n, b in buses.items()}, "tids": {
-                "python main (health)": [threading.get_native_id()],
-                "python worker": [getattr(getattr(gw, "_worker", None), "native_id", None)],
-                "python notifiers": [t.native_id for n in nots for t in getattr(n, "_readers", [])
-                                     if isinstance(t, threading.Thread)]}})
+                "python main (health)": [threading.get_native_id()], "python worker": tids["worker"],
+                "python notifiers": tids["notifiers"]}})
 
             def wait_stop():
                 _wait_for("stop")

@@ -264,14 +264,33 @@ class _Tagger(can.Listener):
         self.wake.set()
 
 
+class Probe:
+    """Timing hooks into a running :class:`GatewayService` (``GatewayService(probe=...)``), for
+    benchmarks and diagnostics: what the service does is told, nothing of it is replaced. Each
+    method runs on the thread doing the work and must return at once; the default does nothing.
+    Stamps are the frames' own (``msg.timestamp`` in ns, a row's ``t_ns``)."""
+
+    def received(self, bus: str, stamps_ns: list[int]) -> None:
+        """Frames just taken from ``bus`` by a gateway thread (a notifier: one; the worker: a read)."""
+
+    def feeding(self, stamps_ns: list[int]) -> None:
+        """A batch of frames is about to go through the session (drivers, estimator, sinks)."""
+
+    def fed(self, stamps_ns: list[int]) -> None:
+        """That batch went through."""
+
+    def ticked(self, start_ns: int, end_ns: int) -> None:
+        """One health tick took ``[start_ns, end_ns)`` (``time.time_ns``)."""
+
+
 class GatewayService:
     def __init__(self, robot, buses: Mapping[str, can.BusABC], session, config: GatewayConfig | None = None, *,
                  model_robot=None, layout=None, record=None, reopen: Callable[[str], can.BusABC] | None = None,
-                 log_offset_ns: int = 0):
+                 log_offset_ns: int = 0, probe: Probe | None = None):
         """``robot``, ``buses`` (opened), the zenoh ``session``: what the service runs on; ``config``:
         how (gateway/config.py; it reads [can] fd and receive, [service], [drivers], [estimator]).
         ``model_robot`` and ``layout``: the loaded model and thruster layout; ``record``: a Recorder;
-        ``reopen``: opens a failed bus again by name."""
+        ``reopen``: opens a failed bus again by name; ``probe``: timing hooks (:class:`Probe`)."""
         config = config or GatewayConfig()
         svc = config.service
         fd, receive, estimate = config.can.fd, config.can.receive, svc.estimate
@@ -293,6 +312,7 @@ class GatewayService:
         self.buses = dict(buses)
         self.session = session
         self.config = config
+        self.probe = probe
         self.fd = fd
         self.health_period_s = svc.health_period_s
         self.recorder = record
@@ -363,6 +383,17 @@ class GatewayService:
                 self._supervisor.start()
         return self
 
+    def thread_ids(self) -> dict[str, list[int]]:
+        """Native ids of the service's threads by role (``worker``; ``notifiers``: python-can's
+        reader threads, threads mode only), for per-thread CPU accounting."""
+        worker = self._worker
+        chans = {str(getattr(b, "channel_info", "")) for b in self.buses.values()}
+        notifiers = [t.native_id for t in threading.enumerate()
+                     if t.native_id is not None and t.name.startswith("Notifier for bus ")
+                     and t.name[len("Notifier for bus "):].strip('"') in chans]
+        return {"worker": [worker.native_id] if worker is not None and worker.native_id is not None else [],
+                "notifiers": notifiers if self.receive == "threads" else []}
+
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
         """Publish health every ``health_period_s`` until ``stop`` is set or ``duration_s`` passes."""
         self.start()
@@ -372,7 +403,12 @@ class GatewayService:
             wait = self.health_period_s if end is None else min(self.health_period_s, end - time.monotonic())
             if wait <= 0 or stop.wait(wait):
                 break
-            self.on_tick()
+            if self.probe is None:
+                self.on_tick()
+            else:
+                t = time.time_ns()
+                self.on_tick()
+                self.probe.ticked(t, time.time_ns())
         self.publish_health()
 
     def drain(self, timeout: float = 30.0) -> bool:
@@ -443,6 +479,8 @@ class GatewayService:
 
     def _offer(self, st: BusState, msg: can.Message) -> None:
         """A notifier thread's frame: into the queue, or dropped and counted. Never blocks."""
+        if self.probe is not None:
+            self.probe.received(st.name, [round(msg.timestamp * 1e9)])
         with self._qlock:
             if self._admit(st, self._queue.qsize()):
                 self._queue.put((st, msg))
@@ -603,8 +641,14 @@ class GatewayService:
         holds ``self._lock``)."""
         for st, _ in items:
             st.processed += 1
+        probe = self.probe
+        if probe is not None:
+            stamps = [round(msg.timestamp * 1e9) for _, msg in items]
+            probe.feeding(stamps)
         try:
             self.engine.feed_messages([(st.name, msg) for st, msg in items])
+            if probe is not None:
+                probe.fed(stamps)
         except Exception:  # noqa: BLE001 - a bug behind a frame must not stop the gateway
             self.pipeline_errors += 1
             if self.pipeline_errors <= 10:
@@ -617,8 +661,14 @@ class GatewayService:
         counts = np.bincount(rows["bus"], minlength=len(self._bus_list)).tolist()
         for st, n in zip(self._bus_list, counts):
             st.processed += n
+        probe = self.probe
+        if probe is not None:
+            stamps = rows["t_ns"].tolist()
+            probe.feeding(stamps)
         try:
             self.engine.feed_frames(rows)
+            if probe is not None:
+                probe.fed(stamps)
         except Exception:  # noqa: BLE001 - a bug behind a frame must not stop the gateway
             self.pipeline_errors += 1
             if self.pipeline_errors <= 10:
@@ -678,6 +728,8 @@ class GatewayService:
                     got = len(msgs)
                     rows = columns_from_messages(msgs) if msgs else None
                 if rows is not None and len(rows):
+                    if self.probe is not None:
+                        self.probe.received(name, rows["t_ns"].tolist())
                     keep = self._admit_rows(st, len(rows), len(backlog))
                     backlog.append(name, rows if keep is None else rows[keep])
                 backlog.unread[name] = got >= DRAIN_MAX         # its socket may hold more

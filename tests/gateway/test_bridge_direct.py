@@ -13,7 +13,7 @@ import pytest
 from drivers import wire
 from drivers.samples import BusHealth, WrenchSample
 from gateway import keys
-from gateway.bridge import GatewayError, GatewayService
+from gateway.bridge import GatewayError, GatewayService, Probe
 from gateway.config import GatewayConfig
 from gateway.efforts import JointEfforts, ThrusterEffort
 from simulator import firmware, scenario
@@ -93,7 +93,7 @@ def test_direct_mode_is_chosen_for_pollable_buses_and_publishes_everything(sessi
         subscribed(pub_s, keys.everything(name))
         with GatewayService(rig.robot, rig.rx, pub_s) as gw:
             assert gw.receive == "direct" and gw.stats["receive"] == "direct"
-            assert not gw._notifiers                          # no notifier thread at all
+            assert gw.thread_ids()["notifiers"] == []         # no notifier thread at all
             rig.steps(300, realtime=True)
             wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
             assert gw.drain(WAIT_S)
@@ -147,6 +147,45 @@ def test_receive_modes_are_checked(sessions, rig):  # noqa: F811
     finally:
         for b in virtual.values():
             b.shutdown()
+
+
+@pytest.mark.parametrize("mode", ["direct", "threads"])
+def test_a_probe_is_told_every_frame_received_and_fed_and_every_tick(sessions, rig, mode):  # noqa: F811
+    """The benchmarks' timing hooks (bridge.Probe): each frame once received, each batch fed once
+    after its 'feeding' call, the health ticks; and the thread ids for per-thread CPU."""
+    pub_s, _ = sessions
+    events: list = []
+
+    class Recorded(Probe):
+        def received(self, bus, stamps):
+            events.append(("received", bus, list(stamps)))
+
+        def feeding(self, stamps):
+            events.append(("feeding", list(stamps)))
+
+        def fed(self, stamps):
+            events.append(("fed", list(stamps)))
+
+        def ticked(self, start, end):
+            events.append(("tick", start, end))
+
+    cfg = GatewayConfig().updated(can={"receive": mode}, service={"health_period_s": 0.02})
+    with GatewayService(rig.robot, rig.rx, pub_s, cfg, probe=Recorded()) as gw:
+        tids = gw.thread_ids()
+        assert len(tids["worker"]) == 1 and (len(tids["notifiers"]) == len(rig.rx) if mode == "threads"
+                                             else tids["notifiers"] == [])
+        rig.steps(40)
+        sent = sum(rig.sent.values())
+        wait_for(lambda: gw.stats["received"] == sent, "frames not all received")
+        assert gw.drain(WAIT_S)
+        gw.run(duration_s=0.2)
+    received = sorted(s for e in events if e[0] == "received" for s in e[2])
+    fed = [e for e in events if e[0] in ("feeding", "fed")]
+    assert len(received) == sent and sorted(s for e in fed if e[0] == "fed" for s in e[1]) == received
+    assert [e[0] for e in fed] == ["feeding", "fed"] * (len(fed) // 2)
+    assert all(a[1] == b[1] for a, b in zip(fed[::2], fed[1::2]))
+    ticks = [e for e in events if e[0] == "tick"]
+    assert len(ticks) >= 2 and all(end >= start for _, start, end in ticks)
 
 
 def test_direct_mode_a_failing_bus_is_counted_and_the_others_continue(sessions, rig):  # noqa: F811
