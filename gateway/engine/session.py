@@ -47,6 +47,10 @@ class Sink:
         """The estimator's effort rows (:func:`gateway.estimator.core.effort_dtype`), each
         one epoch: one :class:`JointEfforts` per arm and a :class:`ThrusterEffort`."""
 
+    def sample_events(self, session: "Session", events: np.ndarray, log_ns: np.ndarray) -> None:
+        """Every decoded sample's event row with its log time, whether or not the session emits
+        samples (``samples=False``): for what a sink derives from them (the recorder's /tf)."""
+
     def frame(self, bus: str, msg: can.Message, log_ns: int) -> None:
         """One raw frame as received (live), before it is decoded."""
 
@@ -73,12 +77,13 @@ class Session:
                  samples: bool = True, health_period_ns: int | None = None, log_offset_ns: int = 0,
                  pipeline_factory=Pipeline):
         self.sinks = list(sinks)
+        self.samples = samples
         self._sorted()
         rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows}
         # pipeline_factory: a stand-in with Pipeline's interface (tests of what runs around it)
         self.pipeline = pipeline_factory(robot, emit=self._emit, model_robot=model_robot, layout=layout, fd=fd,
-                                         estimate=estimate, settings=settings, timing=timing, samples=samples,
-                                         **rows)
+                                         estimate=estimate, settings=settings, timing=timing,
+                                         samples=samples or bool(self._event_sinks), **rows)
         self.name = self.pipeline.name
         self.buses = self.pipeline.buses
         self.health_period_ns = health_period_ns
@@ -92,6 +97,9 @@ class Session:
         self._row_sinks = [s for s in self.sinks if s.rows]
         self._object_sinks = [s for s in self.sinks if not s.rows]
         self._frame_sinks = [s for s in self.sinks if type(s).frame is not Sink.frame]
+        self._event_sinks = [s for s in self.sinks if type(s).sample_events is not Sink.sample_events]
+        if getattr(self, "pipeline", None) is not None:      # a sink added later: the rows it needs
+            self.pipeline.emit_samples = self.samples or bool(self._event_sinks)
 
     def add_sink(self, sink: Sink, *, first: bool = False) -> None:
         """Another output, after the others (``first``: before them; e.g. a probe that times
@@ -110,6 +118,10 @@ class Session:
             s.emit(key, obj, log_ns)
 
     def _sample_rows(self, events: np.ndarray, log_ns: np.ndarray) -> None:
+        for s in self._event_sinks:
+            s.sample_events(self, events, log_ns)
+        if not self.samples:
+            return
         for s in self._row_sinks:
             s.sample_rows(self, events, log_ns)
         if self._object_sinks:                   # objects built once, for the sinks that want them

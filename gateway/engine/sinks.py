@@ -16,13 +16,20 @@ class RecorderSink(Sink):
     ``channels[bus]``. Live (default), a message the recorder refuses (its queue full: the disk is behind) is
     counted by the recorder and the session goes on. ``offline=True`` (a replay, a simulated
     series: nothing is real time) waits for the disk instead, and a refusal is an error.
+
+    ``transforms`` (default on): the robot's frame tree from its IMU and joint samples, as
+    ``foxglove.FrameTransforms`` on ``/tf`` at 50 Hz of log time, and its URDF on
+    ``/robot_description`` (:class:`gateway.foxglove.TransformWriter`), whether or not the
+    session records its samples: Foxglove's 3D panel then draws the robot moving.
     """
 
     BACKPRESSURE_EVERY = 4096        # messages between two looks at the recorder's queue
 
     def __init__(self, recorder, *, frames: bool = True, offline: bool = False, channels=None,
-                 rows: bool = False):
+                 rows: bool = False, transforms: bool = True):
         self.recorder, self.record_frames, self.offline = recorder, frames, offline
+        self.transforms = transforms
+        self._tf = None                         # (session, TransformWriter), made on the first rows
         self.rows = rows                        # samples and efforts as rows: JSON written from them
         self._enc = None
         self.channels = dict(channels or {})    # bus -> its channel, recorded with frames given as rows
@@ -40,6 +47,18 @@ class RecorderSink(Sink):
                 rec = self.recorder
                 if rec.queue_depth > rec.queue_size // 2:
                     rec.flush()
+
+    def sample_events(self, session, events: np.ndarray, log_ns: np.ndarray) -> None:
+        if not self.transforms:
+            return
+        tf = self._tf
+        if tf is None or tf[0] is not session:
+            from gateway.foxglove import TransformWriter
+
+            tf = self._tf = (session, TransformWriter(self.recorder, session.pipeline.robot))
+        n, refused = tf[1].rows(events, log_ns, session.pipeline.drivers.joint_names)
+        if n:
+            self._put(not refused, f"{refused} of {n} transforms", n)
 
     def frame(self, bus: str, msg, log_ns: int) -> None:
         if self.record_frames:

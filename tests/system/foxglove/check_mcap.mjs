@@ -6,7 +6,12 @@
 //  - every message is JSON (no NaN/Infinity tokens) and validates against its channel's schema
 //    (ajv, draft 2020-12);
 //  - the foxglove.* schemas (well-known, with a panel of their own) are the published ones
-//    (@foxglove/schemas), and their messages validate against those.
+//    (@foxglove/schemas: the same fields, types, bounds and required lists; descriptions aside),
+//    and their messages validate against those;
+//  - the frame tree (foxglove.FrameTransform / FrameTransforms, what the 3D panel draws with):
+//    every transform's frames, each frame with one parent, all hanging from one root; and the
+//    URDF on /robot_description (what the 3D panel's URDF layer reads): every link of it is a
+//    frame of the tree, so each link's visuals have a pose. Reported under "tf".
 // Prints one JSON report; exit status 1 when anything is wrong, 2 on a usage error.
 //
 //   node check_mcap.mjs FILE.mcap
@@ -52,6 +57,18 @@ function foxgloveProblems(schema) {
   return problems;
 }
 
+// A schema with what Foxglove reads of it only: no descriptions, comments or dialect.
+function shape(node) {
+  if (Array.isArray(node)) return node.map(shape);
+  if (node === null || typeof node !== "object") return node;
+  const out = {};
+  for (const k of Object.keys(node).sort()) {
+    if (k === "description" || k === "$comment" || k === "$schema" || k === "$id") continue;
+    out[k] = shape(node[k]);
+  }
+  return out;
+}
+
 const fh = await open(path, "r");
 const reader = await McapIndexedReader.Initialize({
   readable: new FileHandleReadable(fh),
@@ -82,7 +99,12 @@ for (const [id, schema] of reader.schemasById) {
   if (schema.name.startsWith("foxglove.")) {
     const published = foxgloveSchemas[schema.name.slice("foxglove.".length)];
     if (!published) problem(`${schema.name}: no such schema in @foxglove/schemas`);
-    else validators.set(`published:${id}`, ajv.compile({ ...published, $id: `published/${schema.name}` }));
+    else {
+      validators.set(`published:${id}`, ajv.compile({ ...published, $id: `published/${schema.name}` }));
+      if (JSON.stringify(shape(parsed)) !== JSON.stringify(shape(published))) {
+        problem(`${schema.name}: differs from the published schema (@foxglove/schemas)`);
+      }
+    }
   }
   try {
     validators.set(id, ajv.compile({ ...parsed, $id: `bsc/${id}` }));
@@ -90,6 +112,16 @@ for (const [id, schema] of reader.schemasById) {
     problem(`${schema.name}: ajv cannot compile it (${err.message})`);
   }
 }
+
+const tf = { messages: 0, transforms: 0, parents: {}, urdf: null, urdf_links: [], urdf_messages: 0 };
+const takeTransform = (t, where) => {
+  tf.transforms += 1;
+  const seen = tf.parents[t.child_frame_id];
+  if (seen !== undefined && seen !== t.parent_frame_id) {
+    problem(`${where}: frame ${t.child_frame_id} has two parents (${seen}, ${t.parent_frame_id})`);
+  }
+  tf.parents[t.child_frame_id] = t.parent_frame_id;
+};
 
 const channels = reader.channelsById;
 for await (const msg of reader.readMessages()) {
@@ -107,6 +139,19 @@ for await (const msg of reader.readMessages()) {
     problem(`${channel.topic} at ${msg.logTime}: not JSON (${err.message})`);
     continue;
   }
+  const where = `${channel.topic} at ${msg.logTime}`;
+  if (schema?.name === "foxglove.FrameTransforms" && Array.isArray(value?.transforms)) {
+    tf.messages += 1;
+    value.transforms.forEach((t) => takeTransform(t, where));
+  } else if (schema?.name === "foxglove.FrameTransform" && value && typeof value === "object") {
+    tf.messages += 1;
+    takeTransform(value, where);
+  } else if (channel.topic === "/robot_description") {
+    tf.urdf_messages += 1;
+    if (typeof value?.data !== "string") problem(`${where}: no URDF text in its data field`);
+    else if (tf.urdf === null) tf.urdf = value.data;
+    else if (tf.urdf !== value.data) problem(`${where}: another URDF than the first`);
+  }
   for (const key of [channel.schemaId, `published:${channel.schemaId}`]) {
     const validate = validators.get(key);
     if (validate && !validate(value)) {
@@ -118,6 +163,23 @@ for await (const msg of reader.readMessages()) {
   }
 }
 await fh.close();
+
+if (tf.messages > 0 || tf.urdf_messages > 0) {
+  const frames = new Set([...Object.keys(tf.parents), ...Object.values(tf.parents)]);
+  const roots = [...frames].filter((f) => tf.parents[f] === undefined);
+  if (tf.messages > 0 && roots.length !== 1) problem(`tf: ${roots.length} roots (${roots.join(", ")}), not one tree`);
+  for (const f of Object.keys(tf.parents)) {          // a cycle never reaches a root
+    let g = f;
+    for (let n = 0; n <= frames.size && tf.parents[g] !== undefined; n += 1) g = tf.parents[g];
+    if (tf.parents[g] !== undefined) problem(`tf: frame ${f} is in a cycle`);
+  }
+  if (tf.urdf !== null) {
+    tf.urdf_links = [...tf.urdf.matchAll(/<link\s+name="([^"]+)"/g)].map((m) => m[1]).sort();
+    for (const link of tf.urdf_links) if (!frames.has(link)) problem(`tf: URDF link ${link} is no frame of /tf`);
+  }
+  report.tf = { messages: tf.messages, transforms: tf.transforms, roots, frames: [...frames].sort(),
+                urdf_messages: tf.urdf_messages, urdf_links: tf.urdf_links };
+}
 report.ok = report.problems.length === 0 && report.messages > 0;
 console.log(JSON.stringify(report, (k, v) => (typeof v === "bigint" ? Number(v) : v), 1));
 process.exit(report.ok ? 0 : 1);

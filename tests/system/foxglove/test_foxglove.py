@@ -62,6 +62,22 @@ def test_a_recorded_session(session):
                  "drivers.samples.BusHealth", "drivers.samples.DeviceHealth"):
         assert report["schemas"][kind]["messages"] > 0, kind
     assert report["messages"] > 10_000 and report["invalid"] == 0
+    _check_robot_tree(report, "paper_robot", seconds=1.0)
+
+
+def _check_robot_tree(report: dict, robot: str, seconds: float) -> None:
+    """The 3D panel's inputs: foxglove.FrameTransforms at 50 Hz (checked against the published
+    schema), one tree rooted at world whose frames are the URDF's links, the URDF in the log."""
+    import robot_description
+
+    links = sorted(j.child for j in robot_description.urdf_joints(robot_description.load(robot).urdf))
+    n = report["schemas"]["foxglove.FrameTransforms"]["messages"]
+    assert abs(n - 50 * seconds) <= 2 and report["schemas"]["foxglove.FrameTransforms"]["invalid"] == 0
+    tf = report["tf"]
+    assert tf["roots"] == ["world"] and tf["urdf_messages"] == 1
+    assert tf["frames"] == sorted([*links, "spacecraft", "world"])
+    assert tf["urdf_links"] == sorted([*links, "spacecraft"])
+    assert tf["transforms"] == n * (len(links) + 1)          # every joint and the attitude, every time
 
 
 def test_a_replay_output(session, tmp_path):
@@ -70,6 +86,7 @@ def test_a_replay_output(session, tmp_path):
     report = check(tmp_path / "replay" / "replay.mcap")
     assert report["schemas"]["gateway.efforts.ThrusterEffort"]["messages"] > 0
     assert report["schemas"]["drivers.samples.JointSample"]["messages"] > 0
+    _check_robot_tree(report, "paper_robot", seconds=1.0)
 
 
 def test_the_records_with_named_counts_alerts_and_odd_channels(tmp_path):
@@ -101,3 +118,39 @@ def test_the_records_with_named_counts_alerts_and_odd_channels(tmp_path):
     assert report["schemas"]["gateway.efforts.Alert"]["messages"] == 2
     assert report["schemas"]["foxglove.Log"]["messages"] == 2        # checked against the published schema too
     assert report["schemas"]["bsc.CanFrame"]["messages"] == 4
+
+
+def test_the_checker_catches_a_frame_tree_foxglove_would_not_draw(tmp_path):
+    """The checks above can fail: a foxglove.FrameTransforms schema that is not the published
+    one, a transform the published schema refuses (no rotation.w), a frame with two parents,
+    a tree with two roots, a URDF link with no frame."""
+    from gateway.foxglove import (FRAME_TRANSFORMS_SCHEMA, ROBOT_DESCRIPTION_SCHEMA, ROBOT_DESCRIPTION_TOPIC,
+                                  TF_TOPIC)
+    from gateway.recorder import Recorder
+
+    def tf(parent, child, **rotation):
+        return {"timestamp": {"sec": 1, "nsec": 0}, "parent_frame_id": parent, "child_frame_id": child,
+                "translation": {"x": 0.0, "y": 0.0, "z": 0.0}, "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, **rotation}}
+
+    good = tmp_path / "good.mcap"
+    bad = tmp_path / "bad.mcap"
+    for path, schema, transforms in (
+            (good, FRAME_TRANSFORMS_SCHEMA, [tf("world", "spacecraft", w=1.0), tf("spacecraft", "imu", w=1.0)]),
+            (bad, {**FRAME_TRANSFORMS_SCHEMA, "required": []},
+             [tf("world", "spacecraft"), tf("spacecraft", "imu", w=1.0), tf("other", "imu", w=1.0)])):
+        with Recorder(path) as rec:
+            rec.add_channel(TF_TOPIC, schema)
+            rec.add_channel(ROBOT_DESCRIPTION_TOPIC, ROBOT_DESCRIPTION_SCHEMA)
+            urdf = ('<robot name="r"><link name="spacecraft"/><link name="imu"/>'
+                    + ('<link name="arm"/>' if path == bad else "") + "</robot>")
+            rec.record(ROBOT_DESCRIPTION_TOPIC, {"data": urdf, "robot": "r"}, log_time_ns=1)
+            rec.record(TF_TOPIC, {"transforms": transforms}, log_time_ns=1)
+    check(good)
+    out = subprocess.run(["node", str(HERE / "check_mcap.mjs"), str(bad)], capture_output=True, text=True, timeout=120)
+    report = json.loads(out.stdout)
+    assert out.returncode == 1 and not report["ok"]
+    problems = "\n".join(report["problems"])
+    for expected in ("foxglove.FrameTransforms: differs from the published schema",
+                     "published schema: data/transforms/0/rotation must have required property 'w'",
+                     "frame imu has two parents", "2 roots", "URDF link arm is no frame of /tf"):
+        assert expected in problems, (expected, problems)
