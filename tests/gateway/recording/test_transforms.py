@@ -249,3 +249,24 @@ def test_a_batch_of_rows_gives_what_the_rows_one_by_one_give():
     want = [m for i in range(n) for m in single.rows(ev[i:i + 1], log[i:i + 1], names)]
     assert len(want) > 20 and got == want
     assert batch.ignored == single.ignored > 0
+
+
+def test_each_rotated_file_gets_the_urdf(tmp_path):
+    """A split recording: every file with transforms has the URDF too, at or before its first
+    transforms (Foxglove opens one file at a time)."""
+    from drivers.samples import ImuSample
+    from gateway.foxglove import TransformWriter
+    from gateway.recorder import Recorder
+
+    robot = robot_description.load("paper_robot")
+    with Recorder(tmp_path / "split.mcap", chunk_size=1024, rotate_bytes=4096) as rec:
+        tw = TransformWriter(rec, robot)
+        for i in range(60):
+            assert tw.sample(ImuSample(i * TF_PERIOD_NS, i % 256, (1.0, 0.0, 0.0, 0.0), (0, 0, 0), (0, 0, 0)))
+            rec.flush()                   # the writer has rotated before the next look at the files
+        paths = rec.paths
+    assert len(paths) >= 5
+    for p in paths:
+        msgs = list(mcaplog.read_messages(p, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
+        if any(m.topic == TF_TOPIC for m in msgs):
+            assert msgs[0].topic == ROBOT_DESCRIPTION_TOPIC, p.name
