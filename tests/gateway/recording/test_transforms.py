@@ -270,3 +270,45 @@ def test_each_rotated_file_gets_the_urdf(tmp_path):
         msgs = list(mcaplog.read_messages(p, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
         if any(m.topic == TF_TOPIC for m in msgs):
             assert msgs[0].topic == ROBOT_DESCRIPTION_TOPIC, p.name
+
+
+def test_bsc_record_over_zenoh_writes_the_transforms(tmp_path):
+    """The samples a gateway publishes, received by bsc record's subscriber on its zenoh thread:
+    /tf from them, nothing refused."""
+    import time
+
+    import zenoh
+
+    from drivers.samples import ImuSample, JointSample
+    from gateway import codec, keys
+    from gateway.commands.record import Recording
+    from gateway.recorder import Recorder
+    from gateway.zenoh_config import make_config
+    from support import free_port
+
+    robot = robot_description.load("paper_robot")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    path = tmp_path / "z.mcap"
+    n_ms = 200
+    with zenoh.open(make_config(listen=[ep])) as rec_s, zenoh.open(make_config(connect=[ep])) as pub_s, \
+            Recorder(path) as rec:
+        with Recording(rec, {}, rec_s, keys.everything(robot.name), robot=robot) as recording:
+            pubs = {name: pub_s.declare_publisher(keys.joint(robot.name, name)) for name in robot.joint_names}
+            imu = pub_s.declare_publisher(keys.imu(robot.name))
+            deadline = time.monotonic() + 30
+            while not all(p.matching_status.matching for p in [imu, *pubs.values()]):
+                assert time.monotonic() < deadline, "no subscriber matched"
+                time.sleep(0.005)
+            for i in range(n_ms):
+                t = 1_000_000_000 + i * 1_000_000
+                for name, p in pubs.items():
+                    p.put(codec.encode(JointSample(name, t, i % 256, 0.01 * i, 0.0)))
+                imu.put(codec.encode(ImuSample(t, i % 256, (1.0, 0.0, 0.0, 0.0), (0, 0, 0), (0, 0, 0))))
+            want = n_ms * (len(pubs) + 1)
+            while sum(recording.samples.values()) + recording.refused + sum(recording.rejected.values()) < want:
+                assert time.monotonic() < deadline, recording.summary()
+                time.sleep(0.005)
+            assert recording.refused == 0 and not recording.rejected
+    tf = list(mcaplog.read_messages(path, [TF_TOPIC]))
+    assert len(tf) == n_ms // 20 - 1                      # a tick per 20 ms after the first
+    assert len(list(mcaplog.read_messages(path, [ROBOT_DESCRIPTION_TOPIC]))) == 1
