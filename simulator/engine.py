@@ -52,7 +52,7 @@ class Readings:
     imu: tuple | None = None               # (quat_wxyz, rate, accel, saturated) at the IMU rate
     torque_cmd: np.ndarray | None = None   # (n,) N m, at the controller rate
     thruster_cmd: np.ndarray | None = None  # (6,) body wrench about C, at the base rate
-    valves: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    valves: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))   # commanded (PWPFM), not actual
 
 
 def friction_from(robot: Robot, cfg, enabled: bool = True) -> Friction:
@@ -138,6 +138,8 @@ class Simulation:
         self._f_joint = np.zeros((self.n_steps, len(r.arms), 6))
         self._sensed = 0                      # rows [0, _sensed) have been through the sensor models
         self._wrench_chunk = np.zeros((self.base_every, 6))
+        # the flight software's valve commands (PWPFM) of the base period: what the bus carries; a
+        # stuck valve makes the actual valve state (the trace's ``valves``) differ from them
         self._chunk_valves = np.zeros((self.base_every, self.layout.n), dtype=bool)
         # end-effector references at every controller step, computed at once
         self._ref = self.ctrl.desired(np.arange(0, self.n_steps, self.ctrl_every) * DT_S)
@@ -264,7 +266,7 @@ class Simulation:
         if self._thr_degrade:
             factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
         valves, thrust = self.thr_err.run(commanded, factor, stuck)
-        self._chunk_valves = valves
+        self._chunk_valves = commanded
         self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
         hold = slice(k, k + be)
         n = len(A["valves"][hold])

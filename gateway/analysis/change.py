@@ -290,7 +290,30 @@ def _finding(sessions, k, key, lead: Track, group: list[Track], state: str, sinc
     return Finding(sessions[k].name, k, kind, target, rule, sev, state, sessions[since].name, msg, ev)
 
 
+THRUSTER_FAULT_RULE = "thruster-fault"
+"""The rule name of thruster faults found within one session (gateway/analysis/fdi.py)."""
+
+
+def session_findings(sessions: list[SessionFeatures]) -> list[Finding]:
+    """Thruster faults found within each session (no baseline): one raised finding each, a stuck
+    valve critical, a partial loss or a leak a warning."""
+    out = []
+    for k, s in enumerate(sessions):
+        for a in s.thruster_faults:
+            sev = "critical" if a["fault"] in ("stuck open", "stuck closed") else "warning"
+            msg = (f"thruster {a['thruster']}: {a['fault']}, named {a['t_s']:.2f} s into the session "
+                   + (f"({a['theta']:.0%} of nominal thrust)" if a["fault"] in ("leak", "partial loss")
+                      else f"(size {a['theta']:.2f} of nominal thrust)"))
+            ev = {key: a[key] for key in ("fault", "t_s", "detected_t_s", "theta", "stat", "window", "efficiency")}
+            out.append(Finding(s.name, k, "thruster", a["target"], THRUSTER_FAULT_RULE, sev, "raised", s.name, msg, ev))
+    return out
+
+
 def analyze_series(sessions: list[SessionFeatures], detectors=DEFAULT_DETECTORS,
                    baseline_sessions: int = 3) -> SeriesResult:
     tracks = build_tracks(sessions, detectors, baseline_sessions)
-    return SeriesResult(sessions, tracks, attribute(sessions, tracks))
+    findings = attribute(sessions, tracks)
+    within = session_findings(sessions)
+    if within:
+        findings = sorted(findings + within, key=lambda f: f.session_index)
+    return SeriesResult(sessions, tracks, findings)

@@ -97,6 +97,7 @@ class SessionFeatures:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)          # e.g. analysed from a truncated log's intact part
+    thruster_faults: list[dict] = field(default_factory=list)   # within the session (analysis.fdi.ThrusterAlarm)
 
     @property
     def name(self) -> str:
@@ -201,10 +202,12 @@ def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
         return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
 
 
-def analyze_session(path: str | os.PathLike[str]) -> SessionFeatures:
+def analyze_session(path: str | os.PathLike[str], *, thrusters: bool = True) -> SessionFeatures:
     """Read one session log and identify its friction, efficiencies and sensor checks. A log cut
     short (a killed recorder, a full disk) or damaged is analysed from what is intact in it, as
-    ``bsc replay`` does, with a note; one that is not an MCAP log at all raises AnalysisError."""
+    ``bsc replay`` does, with a note; one that is not an MCAP log at all raises AnalysisError.
+    ``thrusters``: also look for thruster faults within the session (:mod:`.fdi`; needs the raw
+    CAN frames, a note says when the log has none)."""
     from gateway.mcaplog import McapFileError
     from gateway.replay import ReplayError, readable
 
@@ -213,6 +216,17 @@ def analyze_session(path: str | os.PathLike[str]) -> SessionFeatures:
     try:
         with readable(path, warn=notes.append) as src:
             feats = _analyze_file(path, Path(src))
+            if thrusters:
+                from .fdi import NoRawFrames, analyze_thrusters
+
+                try:
+                    found = analyze_thrusters(src)
+                except NoRawFrames:
+                    pass                      # a log of efforts only: the per-axis figures are all there is
+                except AnalysisError as exc:
+                    feats.notes.append(f"{path}: thruster faults not checked: {exc}")
+                else:
+                    feats.thruster_faults = [a.to_json() for a in found.alarms]
     except (McapFileError, ReplayError, OSError) as exc:
         raise AnalysisError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     feats.notes.extend(n.replace("replaying", "analysing") for n in notes)

@@ -280,6 +280,61 @@ def imu(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu,
     the gyro rate kept) when a step of its interval is missing. Raises ``ValueError`` when the
     innovation covariance is not positive definite (a NaN or inf in P); the random walk is then
     already applied and nothing else."""
+    return imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu, rate_imu,
+                   np.empty(0), True)
+
+
+# the innovation tap of imu_tap (float64 row): applied, rows, e = y - H x (6), S = H P H^T + R
+# (6 x 6, row-major, the first ``rows`` rows and columns), then per valve its open fraction in the
+# accelerometer rows (vbar, n) and its weight in the gyro-difference rows (vt, n)
+TAP_APPLIED, TAP_ROWS, TAP_E, TAP_S, TAP_VALVES = 0, 1, 2, 8, 44
+
+
+def tap_size(n: int) -> int:
+    """Length of the innovation tap of :func:`imu_tap` for ``n`` valves."""
+    return TAP_VALVES + 2 * n
+
+
+@_jit
+def _tap(x, P, m, y, hc, hv, hn, R, cnt, nn, vt, tap):
+    """The innovation of an update before it is applied: ``e = y - H x`` and its covariance
+    ``S = H P H^T + R`` (P after the random walk), with the valve fractions that make H."""
+    n = (x.shape[0] - 6) // 6
+    tap[TAP_APPLIED] = 1.0
+    tap[TAP_ROWS] = m
+    for k in range(TAP_S, TAP_VALVES):
+        tap[k] = 0.0
+    for r in range(6):
+        tap[TAP_E + r] = 0.0
+    for r in range(m):
+        acc = 0.0
+        for k in range(hn[r]):
+            acc += hv[r, k] * x[hc[r, k]]
+        tap[TAP_E + r] = y[r] - acc
+        for s in range(m):
+            acc = 0.0
+            for k in range(hn[r]):
+                ck_ = hc[r, k]
+                for q in range(hn[s]):
+                    acc += hv[r, k] * hv[s, q] * P[ck_, hc[s, q]]
+            if r == s:
+                acc += R[r]
+            tap[TAP_S + 6 * r + s] = acc
+    for i in range(n):
+        tap[TAP_VALVES + i] = cnt[i] / nn
+        tap[TAP_VALVES + n + i] = vt[i] if m == 6 else 0.0
+
+
+@_jit
+def imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu, rate_imu, tap, learn):
+    """:func:`imu`, and when ``tap`` is not empty (length :func:`tap_size`) the update's
+    innovation written into it before the update (``tap[TAP_APPLIED]`` 0 when nothing was
+    applied). The tap only reads the state: with ``learn`` the filter's bits are :func:`imu`'s.
+    Without ``learn`` the sample is measured (the tap, the random walk) but ``x`` is not updated
+    (the fault detector's hold while it suspects a fault, :mod:`.fdi`)."""
+    want = tap.shape[0] > 0
+    if want:
+        tap[TAP_APPLIED] = 0.0
     ns = x.shape[0]
     n = (ns - 6) // 6
     nn = (c.shape[0] + 1) // 2
@@ -355,6 +410,7 @@ def imu(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu,
         hn[r] = k
         R[r] = cst[_R_ACC]
     m = 3
+    vt = np.zeros(n)
     # gyro difference: I (w_k - w_{k-1}) / (n dt) - sum_u c_u (tau_arm(u) - w x I w)
     if have_prev != 0 and abs(float(t_ns - prev_ns) - nn * step_ns) < 0.5 * step_ns:
         span = np.empty(2 * nn - 1, dtype=np.int64)
@@ -364,7 +420,6 @@ def imu(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu,
             e2 = w2 - p2
             T = cst[_T]
             b0 = b1 = b2 = 0.0
-            vt = np.zeros(n)
             for u in range(2 * nn - 1):
                 e = span[u]
                 cu = c[u]
@@ -397,6 +452,10 @@ def imu(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu,
             P[i, i] += Q[i] * dt
     ist[_HAVE_LAST] = 1
     ist[_LAST_NS] = t_ns
+    if want:
+        _tap(x, P, m, y, hc, hv, hn, R, cnt, float(nn), vt, tap)
+    if not learn:
+        return True
     support &= (np.int64(1) << n) - 1
     if support & ~ist[_ACTIVE]:
         _set_runs(ist, n, ist[_ACTIVE] | support)

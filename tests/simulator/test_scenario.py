@@ -1,6 +1,7 @@
 """Scenario files: defaults, validation, degradations."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from simulator import scenario
@@ -66,3 +67,17 @@ def test_degradations_act_at_their_onset():
     assert tr["valves"][350:, 3].all() and not tr["valves"][:100, 3].all()
     bias = tr["ft_meas"][:, 1, 0] - tr["ft_true"][:, 1, 0]
     assert bias[550:].mean() - bias[:90].mean() == pytest.approx(10.0 * 0.5, abs=0.3)
+
+
+def test_a_stuck_valve_is_not_in_the_valve_commands():
+    """The bus carries the flight software's valve commands (PWPFM); a stuck valve changes what
+    the thruster does (the trace's actual valve state), not what it was told."""
+    sc = scenario.load("capture", {"duration_s": 0.8})
+    data = dict(sc.data)
+    data["degrade"] = [{"kind": "thruster_stuck", "thruster": 2, "onset_s": 0.4, "state": "closed"}]
+    sim = Simulation(scenario._build(sc.name, sc.text, data))
+    commanded = np.array([sim.step().valves for _ in range(sim.n_steps)])
+    actual = sim.trace["valves"]
+    assert np.array_equal(commanded[:400], actual[:400])
+    assert not actual[400:, 2].any() and commanded[400:, 2].any()
+    assert np.array_equal(np.delete(commanded, 2, axis=1), np.delete(actual, 2, axis=1))

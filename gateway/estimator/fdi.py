@@ -1,0 +1,467 @@
+"""Thruster fault detection and isolation: which thruster, which fault, from the filter's innovation.
+
+The valve-aided filter (:mod:`.thruster_kernel`) explains the thruster wrench through the valve
+commands, ``sum_i v_i W_i``; the IMU and the F/T sensors see the wrench the thrusters really
+exert (the momentum balance, docs/method.md section 1). At every IMU update the difference of
+the two is the filter's innovation ``e = y - H x`` with covariance ``S = H P H^T + R``
+(:func:`.thruster_kernel.imu_tap`). A faulty thruster j leaves a known signature in it, the
+valve's wrench ``W_j`` seen through the accelerometer rows (``Ha W_j``) and the gyro-difference
+rows (``W_j`` moment), times a known time profile:
+
+- ``open`` (stuck open, a leak): thrust with the valve closed, ``g = (1 - vbar_j) Ha W_j`` and
+  ``(1 - vt_j) W_j^tau``; ``theta`` = the leak's fraction of the thrust (1: stuck open);
+- ``loss`` (stuck closed, partial loss): no or less thrust with the valve open,
+  ``g = -vbar_j Ha W_j``, ``-vt_j W_j^tau``; ``theta`` = the fraction lost (1: stuck closed).
+
+``vbar_j`` is valve j's open fraction over the IMU interval and ``vt_j`` its weight in the gyro
+difference (the rows of H). For each of these ``2 n`` hypotheses a generalised likelihood ratio
+over an exponentially forgetting window, with whitened ``g`` and ``e`` (``L^-1``, ``S = L L^T``)::
+
+    A = sum lambda^(k-u) g_u^T S_u^-1 g_u,   B = sum lambda^(k-u) g_u^T S_u^-1 e_u
+    theta = B / A,   T = B^2 / A  (theta > 0, else 0)
+
+``T`` is chi-squared with one degree of freedom while healthy. Two windows: a short one for the
+gross faults (a stuck valve, 0.1 s) and a long one for partial losses and leaks (4 s). The
+hypothesis with the largest ``T`` above its window's threshold for ``hold`` updates in a row is
+raised: it names the thruster (the direction and moment arm of ``W_j`` and the valve's time
+profile tell the thrusters apart) and the type, from the family and ``theta`` (a loss of
+:data:`CLOSED_THETA` or more is "stuck closed", a leak of :data:`OPEN_THETA` or more "stuck
+open"). The signatures use the NOMINAL valve wrenches (the filter's prior): the learned ones
+follow a fault once it is there, and ``theta`` is then relative to nominal thrust (a healthy
+thruster delivers 0.9-1.0 of it).
+
+Everything here is compiled (numba, explicit loops, no fastmath, nogil, cache): :func:`observe`
+takes one IMU update's tap, the live estimator and the offline run (:func:`run_events`) call the
+same function, so a replay gives the same alarms as the live run. No I/O.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from . import thruster_kernel as tk
+
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+OPEN, LOSS = 0, 1                      # hypothesis families
+FAMILIES = ("open", "loss")
+STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS = range(4)
+TYPES = ("stuck open", "leak", "stuck closed", "partial loss")
+TYPE_KEYS = ("stuck_open", "leak", "stuck_closed", "partial_loss")
+OPEN_THETA = 0.5                       # a leak of at least this fraction of nominal thrust: stuck open
+CLOSED_THETA = 0.75                    # a loss of at least this fraction: stuck closed
+SHORT, LONG = 0, 1
+
+# the detector's constants (float64 array, :meth:`FdiSettings.config`)
+(_C_LAM, _C_THETA1, _C_H, _C_THETA_MIN, _C_HOLD, _C_SUSPECT, _C_CONFIRM, _C_WARMUP,
+ _C_N) = 0, 1, 2, 4, 6, 8, 10, 12, 13
+_NCFG = 14
+# its state (float64 array): a header; per hypothesis the short window's A and B, the CUSUM, its
+# A and B since it last left zero, and whether it was raised; the faults (:data:`_NF` numbers
+# each); the alarm rows (:data:`EVENT_FIELDS`)
+_S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_HDR = 0, 1, 2, 4, 6, 7, 8, 9, 10
+_A, _B, _CU, _CA, _CB, _RAISED = range(6)        # blocks of h = 2 n numbers after the header
+MAX_FAULTS = 4
+# a fault: its hypothesis, A and B since it was raised, the size that raised it, updates since,
+# when it was detected (ns), the detector (SHORT, LONG), its statistic, and its stage
+_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE = range(9)
+_NF = 9
+CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER = 0, 1, 2, 3
+RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
+EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
+_NEV = len(EVENT_FIELDS)
+
+
+@dataclass(frozen=True)
+class FdiSettings:
+    """The two detectors' settings.
+
+    Short (gross faults): a GLR over an exponentially forgetting window of ``short_s``, alarm at
+    ``h_short`` (chi-squared, 1 degree of freedom while healthy; the innovation is not quite
+    white, the gyro differences being MA(1); healthy capture sessions peak near 20) for a size
+    of at least ``theta_min_short``. Long (partial losses, leaks): per hypothesis a CUSUM of the
+    log-likelihood ratio for a fault of size ``theta1`` (fraction of nominal thrust), which
+    restarts by itself while healthy, so an onset anywhere in the session is found without
+    diluting its evidence with the healthy part; alarm at ``h_long`` for a size (estimated since
+    the CUSUM last left zero) of at least ``theta_min_long``. ``hold_*``: updates in a row with
+    the same best hypothesis above threshold; ``confirm_*``: updates after that over which the
+    fault's size is estimated on its own, which gives the type; ``suspect``: above it (short
+    GLR) or above 3/4 of ``h_long`` (CUSUM) the filter stops learning (a fault must not be learnt
+    into the healthy model while it is being decided); ``warmup_s``: no alarm while the filter
+    converges from its prior."""
+
+    short_s: float = 0.1
+    h_short: float = 200.0
+    theta_min_short: float = 0.5
+    hold_short: int = 25
+    confirm_short: int = 50
+    theta1: float = 0.1
+    h_long: float = 40.0
+    theta_min_long: float = 0.05
+    hold_long: int = 50
+    confirm_long: int = 250
+    suspect: float = 40.0
+    warmup_s: float = 1.5
+
+    def config(self, n: int, imu_period_s: float) -> np.ndarray:
+        c = np.zeros(_NCFG)
+        c[_C_LAM] = math.exp(-imu_period_s / self.short_s)
+        c[_C_THETA1] = self.theta1
+        c[_C_H], c[_C_H + 1] = self.h_short, self.h_long
+        c[_C_THETA_MIN], c[_C_THETA_MIN + 1] = self.theta_min_short, self.theta_min_long
+        c[_C_HOLD], c[_C_HOLD + 1] = self.hold_short, self.hold_long
+        c[_C_SUSPECT], c[_C_SUSPECT + 1] = self.suspect, 0.75 * self.h_long
+        c[_C_CONFIRM], c[_C_CONFIRM + 1] = self.confirm_short, self.confirm_long
+        c[_C_WARMUP] = round(self.warmup_s / imu_period_s)
+        c[_C_N] = n
+        return c
+
+
+def _offsets(n: int) -> tuple[int, int, int]:
+    h = 2 * n
+    faults = _S_HDR + 6 * h
+    return _S_HDR, faults, faults + _NF * MAX_FAULTS
+
+
+def state_size(n: int, max_events: int) -> int:
+    """Length of the detector's state for ``n`` thrusters and room for ``max_events`` alarms."""
+    return _offsets(n)[2] + _NEV * max_events
+
+
+def new_state(n: int, max_events: int = 64) -> np.ndarray:
+    st = np.zeros(state_size(n, max_events))
+    st[_S_BEST], st[_S_BEST + 1] = -1.0, -1.0
+    st[_S_LEARN] = 1.0
+    return st
+
+
+@_jit
+def _cholesky(S, m, L):
+    """``S = L L^T`` (m x m, row-major in ``S``); False if not positive definite."""
+    for j in range(m):
+        d = S[6 * j + j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return False
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, m):
+            a = S[6 * i + j]
+            for k in range(j):
+                a -= L[i, k] * L[j, k]
+            L[i, j] = a / L[j, j]
+    return True
+
+
+@_jit
+def _whiten(L, m, v, out):
+    """``out = L^-1 v``."""
+    for r in range(m):
+        a = v[r]
+        for k in range(r):
+            a -= L[r, k] * out[k]
+        out[r] = a / L[r, r]
+
+
+@_jit
+def _signature(Wnom, Ha, tap, n, m, j, fam, g):
+    """The innovation a fault of family ``fam`` of thruster ``j`` of size 1 would cause (m,)."""
+    vbar = tap[tk.TAP_VALVES + j]
+    vt = tap[tk.TAP_VALVES + n + j]
+    ca = (1.0 - vbar) if fam == OPEN else -vbar
+    cg = (1.0 - vt) if fam == OPEN else -vt
+    for r in range(3):
+        acc = 0.0
+        for q in range(6):
+            acc += Ha[6 * r + q] * Wnom[j, q]
+        g[r] = ca * acc
+    for r in range(3):
+        g[3 + r] = cg * Wnom[j, 3 + r] if m == 6 else 0.0
+
+
+@_jit
+def _theta(st, o):
+    """A fault's size: the window's until it is confirmed, then its own estimate since raised."""
+    if st[o + _F_STAGE] == CONFIRMING or st[o + _F_A] <= 0.0:
+        return st[o + _F_THETA0]
+    return st[o + _F_B] / st[o + _F_A]
+
+
+@_jit
+def _fault_type(fam, theta):
+    if fam == OPEN:
+        return STUCK_OPEN if theta >= OPEN_THETA else LEAK
+    return STUCK_CLOSED if theta >= CLOSED_THETA else PARTIAL_LOSS
+
+
+@_jit
+def _stats(st, h_all, w, k):
+    """(statistic, size) of hypothesis k in detector w."""
+    if w == SHORT:
+        A = st[_S_HDR + _A * h_all + k]
+        B = st[_S_HDR + _B * h_all + k]
+        if A > 0.0 and B > 0.0:
+            return B * B / A, B / A
+        return 0.0, 0.0
+    A = st[_S_HDR + _CA * h_all + k]
+    B = st[_S_HDR + _CB * h_all + k]
+    return st[_S_HDR + _CU * h_all + k], (B / A if A > 0.0 else 0.0)
+
+
+@_jit
+def observe(st, cfg, Wnom, Ha, tap, t_ns):
+    """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
+    detector state ``st``. Returns whether the filter may learn from the next update (False while
+    a fault is suspected or being confirmed). Confirmed alarms are appended to the state's alarm
+    rows (:func:`events`); a confirmed fault is then the filter's to model (:func:`valve_mask`,
+    :func:`accommodate`). ``Wnom`` (n, 6): nominal valve wrenches ``[force; moment about C]``
+    (body frame; N, N m); ``Ha`` (18,): the accelerometer rows' map of a wrench, row-major 3 x 6.
+
+    A raised fault is confirmed ``confirm`` updates later, its type from its size estimated over
+    those updates alone. Until the filter models it, its signature times its size is taken out
+    of the innovation the other hypotheses see."""
+    if tap[tk.TAP_APPLIED] == 0.0:
+        return st[_S_LEARN] != 0.0
+    n = int(cfg[_C_N])
+    h_all = 2 * n
+    fbase = _S_HDR + 6 * h_all
+    ev0 = fbase + _NF * MAX_FAULTS
+    m = int(tap[tk.TAP_ROWS])
+    S = tap[tk.TAP_S:tk.TAP_S + 36]
+    L = np.zeros((6, 6))
+    if not _cholesky(S, m, L):
+        return st[_S_LEARN] != 0.0
+    e = np.zeros(6)
+    for r in range(m):
+        e[r] = tap[tk.TAP_E + r]
+    ew = np.zeros(6)
+    g = np.zeros(6)
+    gw = np.zeros(6)
+    _whiten(L, m, e, ew)
+    # faults the filter does not model: their sizes from the raw innovation, then out of it
+    nf = int(st[_S_NFAULTS])
+    confirming = False
+    for f in range(nf):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] == IN_FILTER or st[o + _F_STAGE] == TO_FILTER:
+            continue
+        hyp = int(st[o + _F_HYP])
+        _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
+        _whiten(L, m, g, gw)
+        a = 0.0
+        b = 0.0
+        for r in range(m):
+            a += gw[r] * gw[r]
+            b += gw[r] * ew[r]
+        st[o + _F_A] += a
+        st[o + _F_B] += b
+    for f in range(nf):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] == IN_FILTER or st[o + _F_STAGE] == TO_FILTER:
+            continue
+        hyp = int(st[o + _F_HYP])
+        th = _theta(st, o)
+        _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
+        _whiten(L, m, g, gw)
+        for r in range(m):
+            ew[r] -= th * gw[r]
+        if st[o + _F_STAGE] != CONFIRMING:
+            continue
+        st[o + _F_COUNT] += 1.0
+        if st[o + _F_COUNT] < cfg[_C_CONFIRM + int(st[o + _F_WIN])]:
+            confirming = True
+            continue
+        theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+        typ = _fault_type(hyp % 2, theta)
+        ne = int(st[_S_EVENTS])
+        if ev0 + _NEV * (ne + 1) <= st.shape[0]:
+            q = ev0 + _NEV * ne
+            st[q] = float(t_ns)
+            st[q + 1] = hyp // 2
+            st[q + 2] = typ
+            st[q + 3] = theta
+            st[q + 4] = st[o + _F_STAT]
+            st[q + 5] = st[o + _F_WIN]
+            st[q + 6] = st[o + _F_T]
+            st[_S_EVENTS] = ne + 1
+        if typ == STUCK_OPEN:
+            st[_S_OPEN] = float(int(st[_S_OPEN]) | (1 << (hyp // 2)))
+            st[o + _F_STAGE] = IN_FILTER
+        elif typ == STUCK_CLOSED:
+            st[_S_CLOSED] = float(int(st[_S_CLOSED]) | (1 << (hyp // 2)))
+            st[o + _F_STAGE] = IN_FILTER
+        elif typ == PARTIAL_LOSS:
+            st[o + _F_STAGE] = TO_FILTER
+        else:
+            st[o + _F_STAGE] = IN_DETECTOR
+        for k in range(5 * h_all):            # the detectors restart on the accommodated innovation
+            st[_S_HDR + k] = 0.0
+        for w in range(2):
+            st[_S_BEST + w] = -1.0
+            st[_S_RUN + w] = 0.0
+    st[_S_UPDATES] += 1.0
+    upd = st[_S_UPDATES]
+    lam = cfg[_C_LAM]
+    th1 = cfg[_C_THETA1]
+    for j in range(n):
+        for fam in range(2):
+            _signature(Wnom, Ha, tap, n, m, j, fam, g)
+            _whiten(L, m, g, gw)
+            a = 0.0
+            b = 0.0
+            for r in range(m):
+                a += gw[r] * gw[r]
+                b += gw[r] * ew[r]
+            k = 2 * j + fam
+            st[_S_HDR + _A * h_all + k] = lam * st[_S_HDR + _A * h_all + k] + a
+            st[_S_HDR + _B * h_all + k] = lam * st[_S_HDR + _B * h_all + k] + b
+            cu = st[_S_HDR + _CU * h_all + k] + th1 * b - 0.5 * th1 * th1 * a
+            if cu <= 0.0:
+                st[_S_HDR + _CU * h_all + k] = 0.0
+                st[_S_HDR + _CA * h_all + k] = 0.0
+                st[_S_HDR + _CB * h_all + k] = 0.0
+            else:
+                st[_S_HDR + _CU * h_all + k] = cu
+                st[_S_HDR + _CA * h_all + k] += a
+                st[_S_HDR + _CB * h_all + k] += b
+    if upd <= cfg[_C_WARMUP]:
+        return True
+    suspect = confirming
+    gross = False
+    for w in range(2):
+        best = -1
+        best_t = 0.0
+        for k in range(h_all):
+            T, _ = _stats(st, h_all, w, k)
+            if T > best_t:
+                best_t = T
+                best = k
+        theta = _stats(st, h_all, w, best)[1] if best >= 0 else 0.0
+        if best_t > cfg[_C_SUSPECT + w]:
+            suspect = True
+            if w == SHORT and theta >= cfg[_C_THETA_MIN]:
+                gross = True              # a gross fault is the short detector's to name: its GLR fits
+        if w == LONG and gross:
+            continue
+        if best < 0 or best_t <= cfg[_C_H + w] or theta < cfg[_C_THETA_MIN + w]:
+            st[_S_BEST + w] = -1.0
+            st[_S_RUN + w] = 0.0
+            continue
+        if st[_S_BEST + w] == best:
+            st[_S_RUN + w] += 1.0
+        else:
+            st[_S_BEST + w] = best
+            st[_S_RUN + w] = 1.0
+        if (st[_S_RUN + w] < cfg[_C_HOLD + w] or st[_S_HDR + _RAISED * h_all + best] != 0.0 or confirming
+                or nf >= MAX_FAULTS):
+            continue
+        st[_S_HDR + _RAISED * h_all + best] = 1.0
+        o = fbase + _NF * nf
+        st[o + _F_HYP] = best
+        st[o + _F_A] = 0.0
+        st[o + _F_B] = 0.0
+        st[o + _F_THETA0] = theta
+        st[o + _F_COUNT] = 0.0
+        st[o + _F_T] = float(t_ns)
+        st[o + _F_WIN] = w
+        st[o + _F_STAT] = best_t
+        st[o + _F_STAGE] = CONFIRMING
+        nf += 1
+        st[_S_NFAULTS] = nf
+        confirming = True
+        suspect = True
+    learn = not suspect
+    st[_S_LEARN] = 1.0 if learn else 0.0
+    return learn
+
+
+@_jit
+def accommodate(st, cfg, Wnom, x, P):
+    """Put confirmed partial losses into the filter: the valve's learned wrench less the lost
+    part, and room to refine it (its diagonal of P grows; P stays bitwise symmetric). The
+    stuck valves are modelled through :func:`valve_mask`."""
+    n = int(cfg[_C_N])
+    fbase = _S_HDR + 6 * 2 * n
+    for f in range(int(st[_S_NFAULTS])):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] != TO_FILTER:
+            continue
+        j = int(st[o + _F_HYP]) // 2
+        theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+        f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
+        t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+        for q in range(6):
+            x[6 * j + q] -= theta * Wnom[j, q]
+            P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+        st[o + _F_STAGE] = IN_FILTER
+
+
+@_jit
+def valve_mask(st, mask):
+    """The valves the filter should take as open in a step commanded ``mask``: the confirmed
+    stuck-open ones added, the stuck-closed ones removed."""
+    return (mask | np.int64(st[_S_OPEN])) & ~np.int64(st[_S_CLOSED])
+
+
+def events(st: np.ndarray, n: int) -> np.ndarray:
+    """The alarms raised so far, ``(k, 7)`` rows of :data:`EVENT_FIELDS` (a copy)."""
+    ev0 = _offsets(n)[2]
+    k = int(st[_S_EVENTS])
+    return st[ev0:ev0 + _NEV * k].reshape(k, _NEV).copy()
+
+
+def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
+    """The accommodated faults: ``(thruster, family, size)`` (size: fraction of nominal thrust)."""
+    o = _offsets(n)[1]
+    out = []
+    for f in range(int(st[_S_NFAULTS])):
+        r = st[o + _NF * f:o + _NF * (f + 1)]
+        hyp, A, B = r[_F_HYP], r[_F_A], r[_F_B]
+        out.append((int(hyp) // 2, FAMILIES[int(hyp) % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
+    return out
+
+
+# -- offline: a recorded event stream through the filter and the detector --------------------------------
+
+@_jit
+def run_events(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, kind, t_ns, arm, masks, accel, rate,
+               st, cfg, Wnom, Ha, tap, out_stat, out_wrench):
+    """:func:`.thruster_kernel.run_events` with the detector after every applied IMU update, the
+    confirmed stuck valves modelled (:func:`valve_mask`) and partial losses put into the filter
+    (:func:`accommodate`). ``out_stat[k]`` (IMU events) = the largest statistic of the short and
+    the long detector, and their hypotheses (``2 j + family``), -1 where none; other events get
+    zeros. ``out_wrench[k]`` (STEP, WRENCH_ONLY): the thruster wrench of the step (body frame, N,
+    N m) with the faults found so far modelled; zero for IMU events."""
+    n = Wnom.shape[0]
+    h_all = 2 * n
+    learn = st[_S_LEARN] != 0.0
+    for k in range(kind.shape[0]):
+        kd = kind[k]
+        for q in range(4):
+            out_stat[k, q] = 0.0
+        for q in range(6):
+            out_wrench[k, q] = 0.0
+        if kd == tk.IMU:
+            applied = tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns[k], accel[k], rate[k],
+                                 tap, learn)
+            if applied:
+                learn = observe(st, cfg, Wnom, Ha, tap, t_ns[k])
+                accommodate(st, cfg, Wnom, x, P)
+                for w in range(2):
+                    best = -1.0
+                    bt = 0.0
+                    for hh in range(h_all):
+                        T, _ = _stats(st, h_all, w, hh)
+                        if T > bt:
+                            bt = T
+                            best = hh
+                    out_stat[k, 2 * w] = bt
+                    out_stat[k, 2 * w + 1] = best
+        else:
+            mk = valve_mask(st, masks[k])
+            tk.wrench(x, mk, out_wrench[k])
+            if kd == tk.STEP:
+                tk.push_epoch(hist_t, hist_arm, hist_mask, ist, t_ns[k], arm[k], mk)

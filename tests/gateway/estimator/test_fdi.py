@@ -1,0 +1,180 @@
+"""The thruster fault detector (gateway/estimator/fdi.py) and the filter's innovation tap
+(thruster_kernel.imu_tap), on synthetic event streams with a known valve wrench per thruster and
+a known fault: rigid-body truth, pulsing valves, arm reactions, IMU noise of the settings.
+
+Checked: the tap leaves the filter's bits alone and its innovation is the numpy filter's
+``y - H x``; a healthy stream raises nothing; a stuck-open, a stuck-closed valve and a partial
+loss are named (thruster, type) with their size against the stream's truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import robot_description as rd
+from gateway.estimator import EstimatorModel
+from gateway.estimator import fdi
+from gateway.estimator import thruster_kernel as tk
+from gateway.estimator.thrusters import ThrusterFilter
+from robot_description.thrusters import ThrusterLayout
+
+STEP_NS = 1_000_000
+IMU_STEPS = 2
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return EstimatorModel.from_robot(rd.load("paper_robot")), ThrusterLayout.named()
+
+
+def stream(model, layout, *, steps, seed, fault=None):
+    """Events as the estimator feeds its filter (a STEP per 1 kHz step, an IMU sample every
+    second step) and the truth: each valve's wrench ``W`` (off nominal by a few %), valves
+    pulsing (~9 % duty each), arm reactions, Euler-integrated rates, IMU interval means + the
+    settings' noise. ``fault``: ``(thruster, kind, onset step, factor)``, kind ``stuck_open``
+    (the valve thrusts whatever its command), ``stuck_closed`` (never), ``loss`` (its wrench
+    times ``factor``); the commands stay what the flight software asked."""
+    rng = np.random.default_rng(seed)
+    n = layout.n
+    Is, Is_inv, m, r, R = model.inertia_s, np.linalg.inv(model.inertia_s), model.mass_s, model.r_imu, model.R_imu
+    f = layout.dir * (layout.max_n * (0.95 + 0.03 * rng.normal(size=n)))[:, None] + rng.normal(0, 0.5, (n, 3))
+    W = np.hstack([f, np.cross(layout.pos_m, f)])
+    amp, freq, phase = rng.uniform(10, 60, 6), rng.uniform(0.1, 0.5, 6), rng.uniform(0, 2 * np.pi, 6)
+    w = np.array([0.01, -0.02, 0.015])
+    on = np.zeros(n, dtype=bool)
+    ev = {k: [] for k in ("kind", "t_ns", "arm", "masks", "accel", "rate")}
+    acc_sum, w_sum = np.zeros(3), np.zeros(3)
+
+    def add(kind, t, arm=np.zeros(6), mask=0, accel=np.zeros(3), rate=np.zeros(3)):
+        for k, v in zip(ev, (kind, t, arm, mask, accel, rate)):
+            ev[k].append(v)
+
+    for s in range(1, steps + 1):
+        t = s * STEP_NS
+        on = np.where(on, rng.random(n) > 0.2, rng.random(n) < 0.02)
+        act = on.astype(float)
+        Wt = W
+        if fault is not None and s >= fault[2]:
+            j, kind, _, factor = fault
+            if kind == "stuck_open":
+                act[j] = 1.0
+            elif kind == "stuck_closed":
+                act[j] = 0.0
+            else:
+                Wt = W.copy()
+                Wt[j] *= factor
+        arm = amp * np.sin(2 * np.pi * freq * s * 1e-3 + phase) + rng.normal(0, 0.5, 6)
+        thr = act @ Wt
+        dw = Is_inv @ (thr[3:] + arm[3:] - np.cross(w, Is @ w))
+        w = w + dw * 1e-3
+        acc_sum += (thr[:3] + arm[:3]) / m + np.cross(dw, r) + np.cross(w, np.cross(w, r))
+        w_sum += w
+        add(tk.STEP, t, arm, sum(1 << int(i) for i in np.flatnonzero(on)))
+        if s % IMU_STEPS == 0:
+            add(tk.IMU, t, accel=R.T @ (acc_sum / IMU_STEPS) + rng.normal(0, 3.1e-3, 3),
+                rate=R.T @ (w_sum / IMU_STEPS) + rng.normal(0, 2.9e-5, 3))
+            acc_sum, w_sum = np.zeros(3), np.zeros(3)
+    out = {k: np.ascontiguousarray(np.array(v, dtype=np.int64 if k in ("kind", "t_ns", "masks") else float))
+           for k, v in ev.items()}
+    return out, W
+
+
+def detect(model, layout, ev, settings=None):
+    kf = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    st = fdi.new_state(layout.n)
+    cfg = (settings or fdi.FdiSettings()).config(layout.n, IMU_STEPS * 1e-3)
+    Wnom = np.ascontiguousarray(kf.W.copy())
+    Ha = np.ascontiguousarray(kf.state[3][tk._HA:tk._HA + 18])
+    out = np.zeros((len(ev["kind"]), 4))
+    fdi.run_events(*kf.state, ev["kind"], ev["t_ns"], ev["arm"], ev["masks"], ev["accel"], ev["rate"], st, cfg,
+                   Wnom, Ha, np.zeros(tk.tap_size(layout.n)), out, np.zeros((len(ev["kind"]), 6)))
+    return fdi.events(st, layout.n), out, kf, st
+
+
+def test_tap_leaves_the_filters_bits_alone_and_is_the_numpy_filters_innovation(paper):
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=3000, seed=1)
+    plain = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    tapped = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    ref = ThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    tap = np.zeros(tk.tap_size(layout.n))
+    shifts = np.arange(layout.n)
+    checked = 0
+    for k in range(len(ev["kind"])):
+        t = int(ev["t_ns"][k])
+        if ev["kind"][k] == tk.IMU:
+            a, w = ev["accel"][k], ev["rate"][k]
+            x_before = ref.x.copy()
+            applied = ref.imu(t, a, w)
+            assert plain.imu(t, a, w) == applied
+            assert tk.imu_tap(*tapped.state, t, a, w, tap, True) == applied
+            assert tap[tk.TAP_APPLIED] == float(applied)
+            if applied:
+                rows = int(tap[tk.TAP_ROWS])
+                assert rows in (3, 6)
+                e_ref = ref._y[:rows] - ref._H[:rows] @ x_before
+                scale = np.abs(ref._y[:rows]).max() + 1e-9
+                assert np.abs(tap[tk.TAP_E:tk.TAP_E + rows] - e_ref).max() <= 1e-9 * scale
+                S = tap[tk.TAP_S:tk.TAP_S + 36].reshape(6, 6)[:rows, :rows]
+                assert np.abs(S - S.T).max() <= 1e-12 * np.abs(S).max() and np.all(np.linalg.eigvalsh(S) > 0)
+                checked += 1
+        else:
+            plain.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
+            tapped.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
+            ref.push_epoch(t, ev["arm"][k], ((int(ev["masks"][k]) >> shifts) & 1).astype(float))
+    assert checked > 1400
+    assert np.array_equal(plain.x, tapped.x) and np.array_equal(plain.P, tapped.P)
+
+
+def test_without_learning_the_state_stays_and_the_tap_still_reports(paper):
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=400, seed=2)
+    kf = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    tap = np.zeros(tk.tap_size(layout.n))
+    x0 = kf.x.copy()
+    reported = 0
+    for k in range(len(ev["kind"])):
+        t = int(ev["t_ns"][k])
+        if ev["kind"][k] == tk.IMU:
+            if tk.imu_tap(*kf.state, t, ev["accel"][k], ev["rate"][k], tap, False):
+                reported += tap[tk.TAP_APPLIED] == 1.0
+        else:
+            kf.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
+    assert reported > 150 and np.array_equal(kf.x, x0) and kf.updates == 0
+
+
+def test_healthy_stream_raises_nothing(paper):
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=12000, seed=3)
+    events, stat, kf, _ = detect(model, layout, ev)
+    s = fdi.FdiSettings()
+    assert len(events) == 0
+    imu = ev["kind"] == tk.IMU
+    assert stat[imu, 0].max() < s.h_short / 4 and stat[imu, 2].max() < s.h_long
+    assert kf.updates >= 0.9 * imu.sum()           # the filter learnt (was seldom held)
+
+
+@pytest.mark.parametrize("thruster, kind, factor, want", [
+    (5, "stuck_open", 1.0, fdi.STUCK_OPEN),
+    (12, "stuck_open", 1.0, fdi.STUCK_OPEN),
+    (2, "stuck_closed", 1.0, fdi.STUCK_CLOSED),
+    (9, "loss", 0.7, fdi.PARTIAL_LOSS),
+])
+def test_fault_named_with_its_size(paper, thruster, kind, factor, want):
+    model, layout = paper
+    onset = 4000
+    ev, W = stream(model, layout, steps=9000, seed=10 + thruster, fault=(thruster, kind, onset, factor))
+    events, _, kf, st = detect(model, layout, ev)
+    assert len(events) >= 1, "no alarm"
+    t_ns, j, typ, theta, _, window, detected = events[0]
+    assert (int(j), int(typ)) == (thruster, want), fdi.TYPES[int(typ)]
+    gain = W[thruster, :3] @ layout.dir[thruster] / layout.max_n[thruster]    # the truth's thrust, of nominal
+    truth = gain * (1.0 - factor) if kind == "loss" else gain
+    assert theta == pytest.approx(truth, abs=0.06)
+    delay_s = (t_ns - onset * STEP_NS) / 1e9
+    assert 0 < delay_s <= (0.5 if kind != "loss" else 3.0)
+    assert detected <= t_ns
+    assert len(events) == 1, [fdi.TYPES[int(e[2])] + f" of {int(e[1])}" for e in events[1:]]
+    if kind != "loss":                    # the stuck valve is now the filter's: the valve mask says so
+        bit = 1 << thruster
+        assert fdi.valve_mask(st, 0) == (bit if kind == "stuck_open" else 0)
+        assert fdi.valve_mask(st, bit) == (bit if kind == "stuck_open" else 0)
