@@ -61,7 +61,7 @@ F64 = npt.NDArray[np.float64]
 Record = Any                    # a numba record view of a SAMPLE_DTYPE row: numpy's types cannot name its fields
 ChainScratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]     # chain_kernel._scratch
 Chain = tuple[I64, I64, F64, F64, F64, F64, F64, ChainScratch]        # chain_kernel._epoch's model, weights, rcond
-ThrusterArrays = tuple[F64, F64, F64, F64, F64, I64, F64, I64, I64, F64]  # CompiledThrusterFilter.state
+ThrusterArrays = tk.State                                              # CompiledThrusterFilter.state
 Scratch = tuple[F64, F64, F64]
 Views = tuple[I64, I64, I64, I64, I64, F64, F64, F64, F64, F64, Chain, ThrusterArrays, Scratch]
 

@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit
 
 from . import thruster_kernel as tk
+from .thruster_kernel import F64, I64
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
@@ -139,7 +140,7 @@ def new_state(n: int, max_events: int = 64) -> np.ndarray:
 
 
 @_jit
-def _cholesky(S, m, L):
+def _cholesky(S: F64, m: int, L: F64) -> bool:
     """``S = L L^T`` (m x m, row-major in ``S``); False if not positive definite."""
     for j in range(m):
         d = S[6 * j + j]
@@ -157,7 +158,7 @@ def _cholesky(S, m, L):
 
 
 @_jit
-def _whiten(L, m, v, out):
+def _whiten(L: F64, m: int, v: F64, out: F64) -> None:
     """``out = L^-1 v``."""
     for r in range(m):
         a = v[r]
@@ -167,7 +168,7 @@ def _whiten(L, m, v, out):
 
 
 @_jit
-def _signature(Wnom, Ha, tap, n, m, j, fam, g):
+def _signature(Wnom: F64, Ha: F64, tap: F64, n: int, m: int, j: int, fam: int, g: F64) -> None:
     """The innovation a fault of family ``fam`` of thruster ``j`` of size 1 would cause (m,)."""
     vbar = tap[tk.TAP_VALVES + j]
     vt = tap[tk.TAP_VALVES + n + j]
@@ -183,22 +184,24 @@ def _signature(Wnom, Ha, tap, n, m, j, fam, g):
 
 
 @_jit
-def _theta(st, o):
+def _theta(st: F64, o: int) -> float:
     """A fault's size: the window's until it is confirmed, then its own estimate since raised."""
     if st[o + _F_STAGE] == CONFIRMING or st[o + _F_A] <= 0.0:
-        return st[o + _F_THETA0]
-    return st[o + _F_B] / st[o + _F_A]
+        theta: float = st[o + _F_THETA0]
+    else:
+        theta = st[o + _F_B] / st[o + _F_A]
+    return theta
 
 
 @_jit
-def _fault_type(fam, theta):
+def _fault_type(fam: int, theta: float) -> int:
     if fam == OPEN:
         return STUCK_OPEN if theta >= OPEN_THETA else LEAK
     return STUCK_CLOSED if theta >= CLOSED_THETA else PARTIAL_LOSS
 
 
 @_jit
-def _stats(st, h_all, w, k):
+def _stats(st: F64, h_all: int, w: int, k: int) -> tuple[float, float]:
     """(statistic, size) of hypothesis k in detector w."""
     if w == SHORT:
         A = st[_S_HDR + _A * h_all + k]
@@ -212,7 +215,7 @@ def _stats(st, h_all, w, k):
 
 
 @_jit
-def observe(st, cfg, Wnom, Ha, tap, t_ns):
+def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
     detector state ``st``. Returns whether the filter may learn from the next update (False while
     a fault is suspected or being confirmed). Confirmed alarms are appended to the state's alarm
@@ -224,7 +227,7 @@ def observe(st, cfg, Wnom, Ha, tap, t_ns):
     those updates alone. Until the filter models it, its signature times its size is taken out
     of the innovation the other hypotheses see."""
     if tap[tk.TAP_APPLIED] == 0.0:
-        return st[_S_LEARN] != 0.0
+        return bool(st[_S_LEARN] != 0.0)
     n = int(cfg[_C_N])
     h_all = 2 * n
     fbase = _S_HDR + 6 * h_all
@@ -233,7 +236,7 @@ def observe(st, cfg, Wnom, Ha, tap, t_ns):
     S = tap[tk.TAP_S:tk.TAP_S + 36]
     L = np.zeros((6, 6))
     if not _cholesky(S, m, L):
-        return st[_S_LEARN] != 0.0
+        return bool(st[_S_LEARN] != 0.0)
     e = np.zeros(6)
     for r in range(m):
         e[r] = tap[tk.TAP_E + r]
@@ -379,7 +382,7 @@ def observe(st, cfg, Wnom, Ha, tap, t_ns):
 
 
 @_jit
-def accommodate(st, cfg, Wnom, x, P):
+def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     """Put confirmed partial losses into the filter: the valve's learned wrench less the lost
     part, and room to refine it (its diagonal of P grows; P stays bitwise symmetric). The
     stuck valves are modelled through :func:`valve_mask`."""
@@ -400,7 +403,7 @@ def accommodate(st, cfg, Wnom, x, P):
 
 
 @_jit
-def valve_mask(st, mask):
+def valve_mask(st: F64, mask: int | np.int64) -> np.int64:
     """The valves the filter should take as open in a step commanded ``mask``: the confirmed
     stuck-open ones added, the stuck-closed ones removed."""
     return (mask | np.int64(st[_S_OPEN])) & ~np.int64(st[_S_CLOSED])
@@ -427,8 +430,9 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
 # -- offline: a recorded event stream through the filter and the detector --------------------------------
 
 @_jit
-def run_events(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, kind, t_ns, arm, masks, accel, rate,
-               st, cfg, Wnom, Ha, tap, out_stat, out_wrench):
+def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
+               fst: F64, kind: I64, t_ns: I64, arm: F64, masks: I64, accel: F64, rate: F64, st: F64, cfg: F64,
+               Wnom: F64, Ha: F64, tap: F64, out_stat: F64, out_wrench: F64) -> None:
     """:func:`.thruster_kernel.run_events` with the detector after every applied IMU update, the
     confirmed stuck valves modelled (:func:`valve_mask`) and partial losses put into the filter
     (:func:`accommodate`). ``out_stat[k]`` (IMU events) = the largest statistic of the short and

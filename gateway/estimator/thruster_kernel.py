@@ -53,8 +53,10 @@ Usage::
 from __future__ import annotations
 
 import math
+from typing import Iterable
 
 import numpy as np
+import numpy.typing as npt
 from numba import njit
 
 from robot_description.thrusters import ThrusterLayout
@@ -64,6 +66,11 @@ from .thrusters import ThrusterFilter, ThrusterFilterSettings
 
 # IEEE semantics, no fast-math: the bits are fixed whatever the batch
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+
+F64 = npt.NDArray[np.float64]     # any shape: each function's docstring gives it
+I64 = npt.NDArray[np.int64]
+State = tuple[F64, F64, F64, F64, F64, I64, F64, I64, I64, F64]
+"""``(x, P, Q_per_s, cst, c, hist_t, hist_arm, hist_mask, ist, fst)``: :attr:`CompiledThrusterFilter.state`."""
 
 MAX_VALVES = 32             # the wire's valve mask (bit i = valve i open)
 
@@ -83,7 +90,8 @@ _PREV_W, _W = 0, 3
 
 # -- history -------------------------------------------------------------------------------------
 @_jit
-def push_epoch(hist_t, hist_arm, hist_mask, ist, t_ns, arm_wrench, valves_mask):
+def push_epoch(hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64, t_ns: int, arm_wrench: F64,
+               valves_mask: int | np.int64) -> None:
     """Record one step at ``t_ns`` (int ns): the arms' wrench on the spacecraft ``arm_wrench`` (6,)
     (body frame, force through C, moment about C; N, N m) and the valves open during it (bit i of
     ``valves_mask`` = valve i). The oldest entry goes when the ring is full (a deque's maxlen)."""
@@ -102,7 +110,7 @@ def push_epoch(hist_t, hist_arm, hist_mask, ist, t_ns, arm_wrench, valves_mask):
 
 
 @_jit
-def _steps(hist_t, ist, step_ns, t_end, count, out):
+def _steps(hist_t: I64, ist: I64, step_ns: float, t_end: float, count: int, out: I64) -> bool:
     """Slots of the ``count`` steps ending at ``t_end`` (float ns), oldest first, into ``out``:
     for each wanted time the oldest entry within half a step. False if one is missing."""
     K = hist_t.shape[0]
@@ -123,7 +131,7 @@ def _steps(hist_t, ist, step_ns, t_end, count, out):
 
 
 @_jit
-def _mv3(M, v0, v1, v2):
+def _mv3(M: F64, v0: float, v1: float, v2: float) -> tuple[float, float, float]:
     """``M v`` for a row-major 3x3 ``M`` (9,), sums left to right."""
     return (M[0] * v0 + M[1] * v1 + M[2] * v2, M[3] * v0 + M[4] * v1 + M[5] * v2,
             M[6] * v0 + M[7] * v1 + M[8] * v2)
@@ -131,7 +139,7 @@ def _mv3(M, v0, v1, v2):
 
 # -- the estimate --------------------------------------------------------------------------------
 @_jit
-def wrench(x, valves_mask, out):
+def wrench(x: F64, valves_mask: int | np.int64, out: F64) -> None:
     """Thruster wrench ``[f; tau]`` into ``out`` (6,) (body frame, force through C, moment about C;
     N, N m): the sum of ``W_i`` over the open valves, ascending valve index."""
     n = (x.shape[0] - 6) // 6
@@ -144,7 +152,7 @@ def wrench(x, valves_mask, out):
 
 
 @_jit
-def _set_runs(ist, n, active):
+def _set_runs(ist: I64, n: int, active: int | np.int64) -> None:
     """Contiguous column ranges of the active valves' blocks and the bias block, from the
     valve bitmask ``active`` (ascending)."""
     nr = 0
@@ -172,7 +180,7 @@ def _set_runs(ist, n, active):
 
 
 @_jit
-def _downdate(P, Bt, m, ilo, ihi, jlo, jhi):
+def _downdate(P: F64, Bt: F64, m: int, ilo: int, ihi: int, jlo: int, jhi: int) -> None:
     """``P[i, j] -= sum_r Bt[r, i] Bt[r, j]`` (r ascending) for i in [ilo, ihi), j in [jlo, jhi).
     The inner loops run over slices from 0 (no negative-index handling), so they vectorise; the
     operations of each element stay the same and in the same order."""
@@ -194,7 +202,7 @@ def _downdate(P, Bt, m, ilo, ihi, jlo, jhi):
 
 
 @_jit
-def _update(x, P, ist, m, y, hc, hv, hn, R):
+def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64) -> bool:
     """Kalman update with the m (3 or 6) sparse rows ``hc``/``hv``/``hn`` of H (column indices,
     values, count per row), measurement ``y`` and noise variances ``R``, on the active rows and
     columns (``ist`` runs). Returns False (nothing changed) when S is not positive definite (a NaN
@@ -274,7 +282,8 @@ def _update(x, P, ist, m, y, hc, hv, hn, R):
 
 
 @_jit
-def imu(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu, rate_imu):
+def imu(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64, fst: F64,
+        t_ns: int, accel_imu: F64, rate_imu: F64) -> bool:
     """Apply one IMU sample at ``t_ns`` (int ns, the end of its interval): ``accel_imu`` (m/s^2)
     and ``rate_imu`` (rad/s), (3,) each, IMU frame. True when applied; False (nothing applied but
     the gyro rate kept) when a step of its interval is missing. Raises ``ValueError`` when the
@@ -296,7 +305,8 @@ def tap_size(n: int) -> int:
 
 
 @_jit
-def _tap(x, P, m, y, hc, hv, hn, R, cnt, nn, vt, tap):
+def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt: F64, nn: float, vt: F64,
+         tap: F64) -> None:
     """The innovation of an update before it is applied: ``e = y - H x`` and its covariance
     ``S = H P H^T + R`` (P after the random walk), with the valve fractions that make H."""
     n = (x.shape[0] - 6) // 6
@@ -326,7 +336,8 @@ def _tap(x, P, m, y, hc, hv, hn, R, cnt, nn, vt, tap):
 
 
 @_jit
-def imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu, rate_imu, tap, learn):
+def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
+            fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: bool) -> bool:
     """:func:`imu`, and when ``tap`` is not empty (length :func:`tap_size`) the update's
     innovation written into it before the update (``tap[TAP_APPLIED]`` 0 when nothing was
     applied). The tap only reads the state: with ``learn`` the filter's bits are :func:`imu`'s.
@@ -466,8 +477,9 @@ def imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_
 
 
 @_jit
-def run_events(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst,
-               kind, t_ns, arm, masks, accel, rate, out_wrench, out_applied):
+def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
+               fst: F64, kind: I64, t_ns: I64, arm: F64, masks: I64, accel: F64, rate: F64, out_wrench: F64,
+               out_applied: npt.NDArray[np.int8]) -> None:
     """Apply an ordered event stream: event k of kind ``kind[k]`` (STEP, IMU, WRENCH_ONLY) at
     ``t_ns[k]`` with ``arm[k]`` (6,), ``masks[k]`` (STEP, WRENCH_ONLY) or ``accel[k]``, ``rate[k]``
     (3,) each, IMU frame (IMU). Writes ``out_wrench[k]`` (STEP and WRENCH_ONLY: the thruster
@@ -527,29 +539,30 @@ class CompiledThrusterFilter:
         self._ist = np.zeros(_RUNS + 2 * (self.n + 1), dtype=np.int64)
         self._fst = np.zeros(6)
         _set_runs(self._ist, self.n, np.int64(0))
-        self._state = (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm,
-                       self._hist_mask, self._ist, self._fst)
+        self._state: State = (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm,
+                              self._hist_mask, self._ist, self._fst)
 
     @property
-    def state(self) -> tuple[np.ndarray, ...]:
+    def state(self) -> State:
         """The arrays the kernels take first, ``(x, P, Q_per_s, cst, c, hist_t, hist_arm, hist_mask,
         ist, fst)``: ``imu(*kf.state, t_ns, accel, rate)``, ``run_events(*kf.state, ...)``;
         ``push_epoch`` takes ``hist_t, hist_arm, hist_mask, ist``. The live arrays, updated in place."""
         return self._state
 
-    def share(self, arrays) -> None:
+    def share(self, arrays: Iterable[np.ndarray]) -> None:
         """Work on ``arrays`` from now on: the same shapes, dtypes and order as :attr:`state`,
         e.g. views of a caller's state buffer (the compiled estimator keeps all its state in two
         buffers). The current values are copied into them first."""
-        arrays = tuple(arrays)
-        if len(arrays) != len(self._state) or any(a.shape != b.shape or a.dtype != b.dtype
-                                                  for a, b in zip(arrays, self._state)):
+        given = tuple(arrays)
+        if len(given) != len(self._state) or any(a.shape != b.shape or a.dtype != b.dtype
+                                                 for a, b in zip(given, self._state)):
             raise ValueError("share() needs arrays shaped like CompiledThrusterFilter.state")
-        for a, b in zip(arrays, self._state):
+        for a, b in zip(given, self._state):
             a[...] = b
         (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm, self._hist_mask,
-         self._ist, self._fst) = arrays
-        self._state = arrays
+         self._ist, self._fst) = given
+        self._state = (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm,
+                       self._hist_mask, self._ist, self._fst)
 
     # -- the estimate ----------------------------------------------------------------------------
     @property
@@ -592,7 +605,8 @@ class CompiledThrusterFilter:
 
     def efficiency(self) -> np.ndarray:
         """Per thruster: estimated thrust along the nominal direction / nominal thrust."""
-        return np.einsum("ij,ij->i", self.W[:, :3], self.layout.dir) / self.layout.max_n
+        eff: np.ndarray = np.einsum("ij,ij->i", self.W[:, :3], self.layout.dir) / self.layout.max_n
+        return eff
 
     # -- inputs ----------------------------------------------------------------------------------
     def push_epoch(self, t_ns: int, arm_wrench: np.ndarray, valves_mask: int) -> None:
@@ -601,7 +615,7 @@ class CompiledThrusterFilter:
         push_epoch(self._hist_t, self._hist_arm, self._hist_mask, self._ist, t_ns,
                    np.ascontiguousarray(arm_wrench, dtype=np.float64), valves_mask)
 
-    def imu(self, t_ns: int, accel_imu, rate_imu) -> bool:
+    def imu(self, t_ns: int, accel_imu: np.ndarray, rate_imu: np.ndarray) -> bool:
         """Apply one IMU sample (IMU frame; m/s^2, rad/s) covering the ``imu_steps`` steps that end
         at ``t_ns``. False (nothing applied) when a step of its interval is missing."""
         try:
@@ -624,7 +638,7 @@ class CompiledThrusterFilter:
         if N and not np.isin(kind, (STEP, IMU, WRENCH_ONLY)).all():
             raise ValueError(f"event kinds are {STEP} (step), {IMU} (IMU sample) or {WRENCH_ONLY} (wrench only)")
 
-        def rows(a, width, dtype=np.float64):
+        def rows(a: np.ndarray | None, width: int, dtype: npt.DTypeLike = np.float64) -> np.ndarray:
             if a is None:
                 return np.zeros((N, width) if width else N, dtype=dtype)
             a = np.ascontiguousarray(a, dtype=dtype)
