@@ -38,7 +38,7 @@ def bench_anchor(path: Path, payloads: list[bytes]) -> float:
 
 
 def bench_recorder(path: Path, n: int, feed) -> tuple[float, float, int]:
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     rec = Recorder(path, queue_size=n + 1)
     t0 = time.perf_counter()
@@ -56,7 +56,8 @@ def measure(n: int) -> dict:
     import can
 
     from drivers.samples import WrenchSample
-    from gateway.recorder import can_frame_to_record, _encode
+    from gateway.log.canframe import can_frame_to_record
+    from gateway.log.recorder import _encode
 
     frames = [can.Message(timestamp=1.0 + i * 1e-4, arbitration_id=0x100 + i % 8,
                           data=i.to_bytes(8, "little"), channel="vcan0") for i in range(n)]

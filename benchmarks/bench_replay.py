@@ -88,7 +88,7 @@ def synthetic_steps(seconds: float):
 
 def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
     """``seconds`` of the default scenario recorded as the live gateway records it."""
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.replay import session_context
 
     try:

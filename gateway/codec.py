@@ -26,7 +26,7 @@ from gateway.errors import GatewayError
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
-from gateway.recorder import pair_value_type, pairs_json
+from gateway.log.schema import pair_value_type, pairs_json
 
 VERSION = 1
 ENCODING = "application/json"
@@ -77,7 +77,8 @@ SCHEMA_ENCODING = "application/schema+json"
 def payload_schema(cls: type) -> dict:
     """The JSON schema (draft 2020-12) of ``cls``'s payloads as :func:`encode` writes them: the
     dataclass's fields and the ``type`` and ``v`` of the envelope."""
-    from gateway.recorder import JSON_SCHEMA_DIALECT, json_schema_for
+    from gateway.log.names import JSON_SCHEMA_DIALECT
+    from gateway.log.schema import json_schema_for
 
     s = json_schema_for(cls)
     s["properties"] = {"type": {"const": cls.__name__}, "v": {"const": VERSION}, **s["properties"]}

@@ -1,4 +1,4 @@
-"""Read back what :mod:`gateway.recorder` wrote: inspect, recover and replay MCAP logs.
+"""Read back what :mod:`gateway.log.recorder` wrote: inspect, recover and replay MCAP logs.
 
 - :func:`scan` walks a file record by record (the mcap library's record-level reader), so it
   works on a file cut short by a crash or a full disk and stops cleanly where it was cut. A
@@ -39,7 +39,8 @@ try:
 except ImportError:  # pragma: no cover - zstandard ships with mcap's recommended extras
     _ZstdError = McapError
 
-from gateway.recorder import CAN_SCHEMA_NAME, can_frame_from_record
+from gateway.log.canframe import can_frame_from_record
+from gateway.log.names import CAN_SCHEMA_NAME
 
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")          # opcode, length
@@ -661,7 +662,7 @@ def read_can_frames(path: str | os.PathLike[str], buses: Iterable[str] | None = 
     ``buses`` are logical bus names (``ft0`` for topic ``/can/ft0``); all when ``None``.
     ``window`` takes the time arguments of :func:`read_messages`.
     """
-    from gateway.recorder import CAN_TOPIC_PREFIX
+    from gateway.log.names import CAN_TOPIC_PREFIX
 
     if buses is None:
         with open(path, "rb") as f:
@@ -694,7 +695,7 @@ def to_dataclass(cls: type, record: dict[str, Any]):
     where the field is a tuple, as in :mod:`drivers.samples`."""
     import typing
 
-    from gateway.recorder import pair_value_type, pairs_from_json
+    from gateway.log.schema import pair_value_type, pairs_from_json
 
     hints = typing.get_type_hints(cls)
     kwargs = {}

@@ -6,7 +6,7 @@ Three engines over one reader:
   them, through a fresh :class:`gateway.pipeline.Pipeline` as fast as it can, records every
   sample, health report and effort it emits to a new MCAP file, and writes ``report.json``.
   Same frames in the same order give the same emits, so the efforts are byte-identical to the
-  ones recorded live (``tests/gateway/recording/test_replay.py``).
+  ones recorded live (``tests/gateway/log/test_replay.py``).
 - :func:`play_can` puts the raw frames back on python-can buses with their original spacing
   (scaled by ``rate``).
 - :func:`play_zenoh` republishes the recorded samples, health and efforts on their keys, with
@@ -48,9 +48,9 @@ import numpy as np
 from gateway.errors import GatewayError
 from gateway import mcaplog
 from gateway.mcaplog import McapFileError
-from gateway.recorder import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX,
-                              RECORDING_METADATA, SCENARIO_ATTACHMENT, SESSION_METADATA,
-                              URDF_ATTACHMENT, can_frame_from_record)
+from gateway.log.canframe import can_frame_from_json
+from gateway.log.names import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX, RECORDING_METADATA,
+                               SCENARIO_ATTACHMENT, SESSION_METADATA, URDF_ATTACHMENT)
 
 REPORT_NAME = "report.json"
 OUTPUT_NAME = "replay.mcap"
@@ -396,18 +396,6 @@ def _json(path: Path, topic: str, data: bytes) -> dict[str, Any]:
     return obj
 
 
-# The recorder's bsc.CanFrame JSON (recorder.can_frame_to_record through its encoder), exactly;
-# a record in any other form (another writer, a string channel with escapes) goes through json.
-_INT = rb"(-?(?:0|[1-9][0-9]*))"
-_BOOL = rb"(true|false)"
-_CAN_RECORD = re.compile(
-    rb'\{"t_ns":' + _INT + rb',"arbitration_id":' + _INT + rb',"is_extended_id":' + _BOOL
-    + rb',"is_remote_frame":' + _BOOL + rb',"is_error_frame":' + _BOOL + rb',"is_fd":' + _BOOL
-    + rb',"bitrate_switch":' + _BOOL + rb',"error_state_indicator":' + _BOOL + rb',"is_rx":' + _BOOL
-    + rb',"dlc":' + _INT + rb',"data":"([A-Za-z0-9+/=]*)","channel":(null|' + _INT[1:-1]
-    + rb'|"[ !#-\[\]-~]*")\}')
-
-
 def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
                     can_ids: Iterable[int] | None = None, start_ns: int | None = None,
                     end_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
@@ -416,10 +404,6 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
     ``t_ns`` is the log time (the frame's own timestamp); ``msg.timestamp`` is ``t_ns / 1e9``,
     which rounds back to exactly ``t_ns``.
     """
-    import base64
-
-    import can
-
     bus_set = None if buses is None else {CAN_TOPIC_PREFIX + b for b in buses}
     id_set = None if can_ids is None else frozenset(can_ids)
 
@@ -428,45 +412,17 @@ def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
                 and (bus_set is None or topic in bus_set))
 
     cut = len(CAN_TOPIC_PREFIX)
-    match = _CAN_RECORD.fullmatch
-    b64 = base64.b64decode
-    Message = can.Message
-    true = b"true"
     buses_of: dict[str, str] = {}
     for topic, _, m in iter_file_order(path, want, start_ns, end_ns):
         bus = buses_of.get(topic)
         if bus is None:
             bus = buses_of[topic] = topic[cut:]
-        g = match(m.data)
-        if g is not None:          # the same values json.loads + can_frame_from_record would give
-            (t_ns, ident, ext, rtr, err, fd, brs, esi, rx, dlc, data, channel) = g.groups()
-            ident = int(ident)
-            if id_set is not None and ident not in id_set:
-                continue
-            try:
-                payload = b64(data, validate=True)
-            except ValueError as exc:
-                raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
-            if channel == b"null" or channel == b'""':      # "" is how a frame without a channel is written
-                channel = None
-            elif channel[:1] == b'"':
-                channel = channel[1:-1].decode("ascii")
-            else:
-                channel = int(channel)
-            msg = Message(timestamp=int(t_ns) / 1e9, arbitration_id=ident, is_extended_id=ext == true,
-                          is_remote_frame=rtr == true, is_error_frame=err == true, is_fd=fd == true,
-                          bitrate_switch=brs == true, error_state_indicator=esi == true, is_rx=rx == true,
-                          dlc=int(dlc), data=payload, channel=channel)
-            yield bus, m.log_time, msg
-            continue
-        rec = _json(path, topic, m.data)
-        if id_set is not None and rec.get("arbitration_id") not in id_set:
-            continue
         try:
-            msg = can_frame_from_record(rec)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise McapFileError(f"{path}: {topic}: a frame record is malformed ({exc!r})") from None
-        yield bus, m.log_time, msg
+            msg = can_frame_from_json(m.data, id_set)
+        except ValueError as exc:
+            raise McapFileError(f"{path}: {topic}: a frame record is {exc}") from None
+        if msg is not None:
+            yield bus, m.log_time, msg
 
 
 # ----------------------------------------------------------------------------- robots
@@ -723,7 +679,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from gateway.engine import Session, Sink
     from gateway.engine.sinks import RecorderSink
     from gateway.engine.sources import mcap_frames, read_ahead
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     import robot_description
     from robot_description.thrusters import ThrusterLayout

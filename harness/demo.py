@@ -161,7 +161,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
 
     from gateway import codec, keys
     from gateway.bridge import GatewayService
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.zenoh_config import make_config
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation

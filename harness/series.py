@@ -214,7 +214,7 @@ def _load_scenario(text: str, path: Path):
 def _record_session(text: str, path: Path, meta: dict, save_truth: bool) -> None:
     from gateway.engine import Session
     from gateway.engine.sinks import RecorderSink
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
     from simulator.firmware import Firmware

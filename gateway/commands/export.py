@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from gateway.engine import canlog
+    from gateway.log import canlog
     from gateway.replay import ReplayError, iter_can_frames, parse_can_ids, read_context, readable
 
     fmt = canlog.format_of_name(args.output)

@@ -210,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
                                                              multicast_scouting=z.multicast_scouting)))
         rec = None
         if config.recording.path is not None:
-            from gateway.recorder import Recorder
+            from gateway.log.recorder import Recorder
             from gateway.replay import session_context
 
             rec = stack.enter_context(Recorder(config.recording.path))

@@ -44,7 +44,7 @@ def warn(command: str):
 def load(file, robot: str | None, buses: list[str]):
     """(robot, bus map) of a CAN log's import, checked."""
     from drivers.wire import WireMap
-    from gateway.engine import canlog
+    from gateway.log import canlog
 
     rob = canlog.robot_for_log(robot, file)
     return rob, canlog.parse_bus_map(buses, list(WireMap.from_robot(rob).buses))
@@ -56,7 +56,7 @@ def summary(stats) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gateway.engine import canlog
+    from gateway.log import canlog
 
     if not canlog.is_can_log(args.file):
         raise canlog.CanLogError(f"{args.file}: not a CAN log by its name (use {', '.join(canlog.FORMATS)}, "
@@ -78,7 +78,7 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
     import json
     import os
 
-    from gateway.engine import canlog
+    from gateway.log import canlog
 
     if getattr(args, "check", False):
         raise canlog.CanLogError("--check compares with the efforts a bsc recording holds; a CAN log holds none")
@@ -105,7 +105,7 @@ def replay_can_log(args: argparse.Namespace, run) -> int:
 
 def first_time_ns(path) -> int:
     """The log time of a CAN log's first frame (for ordering sessions); -1 when none."""
-    from gateway.engine import canlog
+    from gateway.log import canlog
 
     try:
         return next((t for _, t, _ in canlog.read_log(path)), -1)
@@ -120,7 +120,7 @@ def analyze_logs(paths, args: argparse.Namespace, tmp: Path) -> tuple[list[str],
 
     The replays are made in the order of the logs' first frames, which is the order analyze
     then takes them in (by the replay's recording start, then by path)."""
-    from gateway.engine import canlog
+    from gateway.log import canlog
     from gateway.replay import replay_offline
 
     rest, logs, given = [], [], set()
@@ -162,7 +162,7 @@ def info_lines(path, *, as_json: bool = False) -> str:
     import json
     from collections import Counter
 
-    from gateway.engine import canlog
+    from gateway.log import canlog
     from gateway.mcaplog import human_size
 
     stats = canlog.ImportStats(source=str(path), format=canlog.FORMATS[canlog.log_format(path)])

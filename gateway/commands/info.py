@@ -19,7 +19,7 @@ def run(args: argparse.Namespace) -> int:
 
     from gateway.mcaplog import human_size, inspect
 
-    from gateway.engine.canlog import is_can_log
+    from gateway.log.canlog import is_can_log
 
     if is_can_log(args.file):
         from gateway.commands.import_log import info_lines

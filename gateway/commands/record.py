@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 class Recording:
-    """Feeds a :class:`gateway.recorder.Recorder` from CAN buses and a zenoh subscription.
+    """Feeds a :class:`gateway.log.recorder.Recorder` from CAN buses and a zenoh subscription.
 
     Given open buses (logical name -> ``can.BusABC``) and/or an open zenoh session; owns only
     the notifiers and the subscriber it creates. A context manager; ``close()`` twice is fine.
@@ -66,7 +66,7 @@ class Recording:
     ``refused``, samples it cannot type in ``rejected`` (by reason). With ``robot`` (a
     :class:`robot_description.Robot`), its IMU and joint samples also make the frame tree on
     ``/tf`` and the URDF on ``/robot_description`` for Foxglove's 3D panel
-    (:class:`gateway.foxglove.TransformWriter`).
+    (:class:`gateway.log.foxglove.TransformWriter`).
     """
 
     def __init__(self, recorder, buses: Mapping[str, Any] | None = None, session=None,
@@ -89,7 +89,7 @@ class Recording:
         self._log_declared = False          # the foxglove.Log topic of alerts
         self._tf = None                     # robot given: /tf and /robot_description from its samples
         if robot is not None:
-            from gateway.foxglove import TransformWriter
+            from gateway.log.foxglove import TransformWriter
 
             self._tf = TransformWriter(recorder, robot)
 
@@ -166,7 +166,7 @@ class Recording:
                 self.refused += 1
 
     def _log_alert(self, alert) -> bool:
-        from gateway.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA, alert_log
+        from gateway.log.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA, alert_log
 
         with self._lock:
             if not self._log_declared:
@@ -248,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.wire import WireMap
     from gateway import keys
     from gateway.cli import UserError
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.replay import session_context
 
     _positive("--duration", args.duration)

@@ -87,7 +87,7 @@ def _warn(text: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gateway.engine.canlog import is_can_log
+    from gateway.log.canlog import is_can_log
 
     if isinstance(args.file, str):         # run again by replay_can_log on the imported session
         args.file = [args.file]

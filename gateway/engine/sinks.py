@@ -10,7 +10,7 @@ from .session import Sink
 
 class RecorderSink(Sink):
     """Everything a session emits, and (``frames=True``) the raw frames it was fed, to a
-    :class:`gateway.recorder.Recorder`, each under the log time the session gives it.
+    :class:`gateway.log.recorder.Recorder`, each under the log time the session gives it.
 
     Frames given as rows are recorded as python-can would have given them, with the bus's
     ``channels[bus]``. Live (default), a message the recorder refuses (its queue full: the disk is behind) is
@@ -19,7 +19,7 @@ class RecorderSink(Sink):
 
     ``transforms`` (default on): the robot's frame tree from its IMU and joint samples, as
     ``foxglove.FrameTransforms`` on ``/tf`` at 50 Hz of log time, and its URDF on
-    ``/robot_description`` (:class:`gateway.foxglove.TransformWriter`), whether or not the
+    ``/robot_description`` (:class:`gateway.log.foxglove.TransformWriter`), whether or not the
     session records its samples: Foxglove's 3D panel then draws the robot moving.
     """
 
@@ -38,7 +38,7 @@ class RecorderSink(Sink):
     def _put(self, ok: bool, what: str, n: int = 1) -> None:
         if self.offline:
             if not ok:
-                from gateway.recorder import RecorderError
+                from gateway.log.recorder import RecorderError
 
                 raise RecorderError(f"the recorder refused {what}: {self.recorder.error or self.recorder.stats}")
             self._n += n
@@ -53,7 +53,7 @@ class RecorderSink(Sink):
             return
         tf = self._tf
         if tf is None or tf[0] is not session:
-            from gateway.foxglove import TransformWriter
+            from gateway.log.foxglove import TransformWriter
 
             tf = self._tf = (session, TransformWriter(self.recorder, session.pipeline.robot))
         n, refused = tf[1].rows(events, log_ns, session.pipeline.drivers.joint_names)

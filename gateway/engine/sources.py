@@ -23,15 +23,14 @@ from typing import Iterator, NamedTuple
 import numpy as np
 from numba import njit
 
+from gateway.log.canframe import KEYS
 from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 _OP_MESSAGE, _OP_CHUNK = 0x05, 0x06
 _CHUNK_FIXED = struct.Struct("<QQQII")          # start, end, uncompressed size, crc, compression length
-_KEYS = (b'{"t_ns":', b',"arbitration_id":', b',"is_extended_id":', b',"is_remote_frame":',
-         b',"is_error_frame":', b',"is_fd":', b',"bitrate_switch":', b',"error_state_indicator":',
-         b',"is_rx":', b',"dlc":', b',"data":"', b'","channel":')
+_KEYS = KEYS                                  # the record's literal parts (gateway.log.canframe)
 _B64 = np.full(256, 255, dtype=np.uint8)
 for _i, _c in enumerate(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"):
     _B64[_c] = _i
@@ -306,7 +305,8 @@ def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: 
     """The raw frames of ``buses`` (``bus`` = index into it), chunk by chunk in file order; None
     when the log has no usable summary (read it with :func:`gateway.replay.iter_can_frames`)."""
     from gateway.mcaplog import McapFileError
-    from gateway.recorder import CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, can_frame_from_record
+    from gateway.log.canframe import can_frame_from_record
+    from gateway.log.names import CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX
 
     path = Path(path)
     try:

@@ -109,7 +109,7 @@ def _gateway(robot, msgs) -> None:
     from drivers import wire
     from drivers.receive import BusReader
     from gateway.bridge import DRAIN_MAX, GatewayService
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     names = list(wire.WireMap.from_robot(robot).buses)
     with tempfile.TemporaryDirectory(prefix="bsc-warm-") as tmp, \

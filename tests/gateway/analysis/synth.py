@@ -10,7 +10,7 @@ import numpy as np
 
 from gateway import keys
 from gateway.efforts import JointEfforts, ThrusterEffort
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 from harness.series import EPOCH_NS, SERIES_METADATA, SESSION_SPACING_NS
 
 ROBOT = "synthbot"

@@ -73,7 +73,7 @@ def test_not_a_log_and_no_efforts(tmp_path):
     bad.write_bytes(b"not mcap")
     with pytest.raises(AnalysisError):
         analyze_session(bad)
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     empty = tmp_path / "e.mcap"
     with Recorder(empty) as rec:
         rec.record("/other", {"a": 1}, 1)

@@ -11,7 +11,7 @@ import pytest
 
 from gateway import codec
 from gateway.engine.encode import EffortJson, SampleJson
-from gateway.recorder import _dataclass_json
+from gateway.log.schema import dataclass_json
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "estimator"))
 from test_core import _samples  # noqa: E402
@@ -25,7 +25,7 @@ from simulator import firmware  # noqa: E402
 def _python(objs, form):
     if form == "zenoh":
         return [codec.encode(o) for o in objs]
-    return [_dataclass_json(type(o))(o).encode() for o in objs]
+    return [dataclass_json(type(o))(o).encode() for o in objs]
 
 
 @pytest.fixture(scope="module", params=["capture", "three_arm"])

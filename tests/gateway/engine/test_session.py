@@ -116,7 +116,7 @@ def test_recorder_sink_writes_rows_in_the_order_they_were_fed(robot, frames, tmp
     """A replay feeds a log's frames in file order, so frames fed as rows (a batch merged by time
     across buses) are written in that order, not bus by bus."""
     from gateway.engine.sinks import RecorderSink
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.replay import iter_can_frames
 
     pairs = frames[:200]

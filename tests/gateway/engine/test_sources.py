@@ -15,7 +15,8 @@ from drivers.kernel import columns_from_messages
 from gateway import replay as rp
 from gateway.engine.sources import mcap_frames
 from gateway.mcaplog import McapFileError
-from gateway.recorder import Recorder, can_frame_to_record
+from gateway.log.canframe import can_frame_to_record
+from gateway.log.recorder import Recorder
 
 
 def _messages(n: int, seed: int):

@@ -52,7 +52,7 @@ from gateway import bridge
 from gateway.config import GatewayConfig
 
 DIRECT = GatewayConfig().updated(can={"receive": "direct"})
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 from gateway.zenoh_config import make_config
 from simulator import firmware, scenario
 from simulator.engine import DT_S, Simulation

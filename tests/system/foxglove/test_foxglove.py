@@ -98,7 +98,7 @@ def test_the_records_with_named_counts_alerts_and_odd_channels(tmp_path):
     from gateway import codec
     from gateway.commands.record import Recording
     from gateway.efforts import Alert
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     path = tmp_path / "odd.mcap"
     with Recorder(path) as rec:
@@ -124,9 +124,9 @@ def test_the_checker_catches_a_frame_tree_foxglove_would_not_draw(tmp_path):
     """The checks above can fail: a foxglove.FrameTransforms schema that is not the published
     one, a transform the published schema refuses (no rotation.w), a frame with two parents,
     a tree with two roots, a URDF link with no frame."""
-    from gateway.foxglove import (FRAME_TRANSFORMS_SCHEMA, ROBOT_DESCRIPTION_SCHEMA, ROBOT_DESCRIPTION_TOPIC,
-                                  TF_TOPIC)
-    from gateway.recorder import Recorder
+    from gateway.log.foxglove import (FRAME_TRANSFORMS_SCHEMA, ROBOT_DESCRIPTION_SCHEMA, ROBOT_DESCRIPTION_TOPIC,
+                                      TF_TOPIC)
+    from gateway.log.recorder import Recorder
 
     def tf(parent, child, **rotation):
         return {"timestamp": {"sec": 1, "nsec": 0}, "parent_frame_id": parent, "child_frame_id": child,

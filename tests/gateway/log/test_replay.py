@@ -28,7 +28,7 @@ from gateway import codec, keys, mcaplog
 from gateway import replay as rp
 from gateway.cli import main
 from gateway.efforts import JointEfforts, ThrusterEffort
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 from support import free_port as _free_port
 
 ROBOT = "paper_robot"

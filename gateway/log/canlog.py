@@ -393,7 +393,7 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     in file order at their own times. Returns what was read; raises :class:`CanLogError` (and
     leaves no output) when nothing maps to a bus or a ``--bus`` channel is not in the file."""
     from drivers.wire import WireMap
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.replay import session_context
 
     path, out = Path(path), Path(out)

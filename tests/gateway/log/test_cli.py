@@ -6,7 +6,7 @@ import json
 import can
 
 from drivers.samples import WrenchSample
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 
 
 def _log(path, gap_at: int | None = None):

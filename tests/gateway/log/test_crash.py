@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[3]
 def test_sigkill_mid_run_then_recover(tmp_path):
     path = tmp_path / "killed.mcap"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    child = subprocess.Popen([sys.executable, "-m", "tests.gateway.recording._crash_child", str(path),
+    child = subprocess.Popen([sys.executable, "-m", "tests.gateway.log._crash_child", str(path),
                               "4000"], stdout=subprocess.PIPE, text=True, cwd=REPO, env=env)
     last_flushed = 0
     try:

@@ -28,33 +28,25 @@ are never dropped.
 """
 from __future__ import annotations
 
-import base64
 import collections
 import dataclasses
-import enum
 import json
 import os
 import socket
 import sys
 import threading
 import time
-import types
-import typing
 import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from gateway.errors import GatewayError
-
-CAN_TOPIC_PREFIX = "/can/"
-CAN_SCHEMA_NAME = "bsc.CanFrame"
-RECORDING_METADATA = "bsc.recording"      # written by the recorder into every file
-SESSION_METADATA = "bsc.session"          # add_session_context(): software version, scenario name
-ZENOH_KEYS_METADATA = "zenoh.keys"        # add_session_context(zenoh_keys=...): name -> key expr
-URDF_ATTACHMENT = "robot.urdf"
-SCENARIO_ATTACHMENT = "scenario.toml"
-DBC_ATTACHMENT_PREFIX = "dbc/"            # one attachment per DBC file: dbc/<file name>
+from gateway.log.canframe import CAN_FRAME_SCHEMA, can_frame_json, can_frame_json_rows, can_topic
+from gateway.log.names import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX, JSON_SCHEMA_DIALECT,
+                               RECORDING_METADATA, SCENARIO_ATTACHMENT, SESSION_METADATA, URDF_ATTACHMENT,
+                               ZENOH_KEYS_METADATA)
+from gateway.log.schema import dataclass_json, dict_schema, encode_json, field_names, json_schema_for, qualname
 
 DEFAULT_CHUNK_SIZE = 128 * 1024
 DEFAULT_QUEUE_SIZE = 65_536
@@ -64,288 +56,9 @@ DEFAULT_FLUSH_INTERVAL_S = 1.0
 _MESSAGE_OVERHEAD = 31
 _POLL_S = 0.01
 
-JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"   # declared by every channel's schema
-
-CAN_FRAME_SCHEMA: dict[str, Any] = {
-    "title": CAN_SCHEMA_NAME,
-    "description": "One raw CAN / CAN FD frame as python-can received it (bsc recorder).",
-    "type": "object",
-    "properties": {
-        "t_ns": {"type": "integer", "description": "frame timestamp (python-can), ns"},
-        "arbitration_id": {"type": "integer"},
-        "is_extended_id": {"type": "boolean"},
-        "is_remote_frame": {"type": "boolean"},
-        "is_error_frame": {"type": "boolean"},
-        "is_fd": {"type": "boolean"},
-        "bitrate_switch": {"type": "boolean"},
-        "error_state_indicator": {"type": "boolean"},
-        "is_rx": {"type": "boolean"},
-        "dlc": {"type": "integer"},
-        "data": {"type": "string", "contentEncoding": "base64",
-                 "description": "payload bytes, base64"},
-        "channel": {"type": "string",
-                    "description": "python-can channel the frame came from, as text (\"\" when none)"},
-    },
-    "required": ["t_ns", "arbitration_id", "is_extended_id", "is_remote_frame",
-                 "is_error_frame", "is_fd", "bitrate_switch", "dlc", "data", "channel"],
-}
-
 
 class RecorderError(GatewayError, OSError):
     """Recording failed (cannot write the file, disk full): data written before stays valid."""
-
-
-# ----------------------------------------------------------------------------- raw CAN frames
-
-def can_frame_to_record(msg) -> dict[str, Any]:
-    """A python-can ``Message`` as a JSON-ready dict (the ``bsc.CanFrame`` schema).
-
-    ``data`` is base64 and round-trips bit for bit; ``t_ns`` is ``round(timestamp * 1e9)``.
-    """
-    channel = channel_text(msg.channel)
-    return {
-        "t_ns": round(msg.timestamp * 1e9),
-        "arbitration_id": msg.arbitration_id,
-        "is_extended_id": msg.is_extended_id,
-        "is_remote_frame": msg.is_remote_frame,
-        "is_error_frame": msg.is_error_frame,
-        "is_fd": msg.is_fd,
-        "bitrate_switch": msg.bitrate_switch,
-        "error_state_indicator": msg.error_state_indicator,
-        "is_rx": msg.is_rx,
-        "dlc": msg.dlc,
-        "data": base64.b64encode(bytes(msg.data)).decode("ascii"),
-        "channel": channel,
-    }
-
-
-def channel_text(channel) -> str:
-    """A frame's python-can channel as recorded: text, ``""`` for none (one JSON type per field,
-    as Foxglove's schema loader needs; a log from before this wrote null or an integer, and reads
-    back as it was)."""
-    return "" if channel is None else channel if isinstance(channel, str) else str(channel)
-
-
-_JSON_BOOL = {True: "true", False: "false"}
-_CAN_JSON = ('{"t_ns":%d,"arbitration_id":%d,"is_extended_id":%s,"is_remote_frame":%s,"is_error_frame":%s,'
-             '"is_fd":%s,"bitrate_switch":%s,"error_state_indicator":%s,"is_rx":%s,"dlc":%d,"data":"%s",'
-             '"channel":%s}')
-_CHANNEL_JSON: dict = {}
-
-
-def can_frame_json(msg) -> tuple[int, bytes]:
-    """``(t_ns, JSON bytes)`` of :func:`can_frame_to_record`, encoded as the recorder's encoder
-    does (same bytes), about 3x faster: the gateway records every frame in its worker thread."""
-    try:
-        b = _JSON_BOOL
-        ch = _CHANNEL_JSON.get(msg.channel)
-        if ch is None:
-            rec_ch = can_frame_to_record(msg)["channel"]
-            ch = _CHANNEL_JSON[msg.channel] = _encode(rec_ch)
-        t = round(msg.timestamp * 1e9)
-        return t, (_CAN_JSON % (
-            t, msg.arbitration_id, b[msg.is_extended_id], b[msg.is_remote_frame], b[msg.is_error_frame],
-            b[msg.is_fd], b[msg.bitrate_switch], b[msg.error_state_indicator], b[msg.is_rx], msg.dlc,
-            base64.b64encode(bytes(msg.data)).decode("ascii"), ch)).encode()
-    except (KeyError, TypeError):        # a field that is not a plain bool, int or hashable channel
-        rec = can_frame_to_record(msg)
-        return rec["t_ns"], _encode(rec).encode()
-
-
-def can_frame_json_rows(rows, channel=None) -> list[bytes]:
-    """:func:`can_frame_json` of frames given as :data:`drivers.kernel.FRAME_DTYPE` rows (read
-    straight from a socket): the same bytes python-can's message of the frame would give, with
-    ``channel`` (the receiving bus's) and ``is_rx`` true (a received frame)."""
-    b = _JSON_BOOL
-    channel = channel_text(channel)     # as can_frame_json: a list or an object is not a JSON value
-    ch = _CHANNEL_JSON.get(channel)
-    if ch is None:
-        ch = _CHANNEL_JSON[channel] = _encode(channel)
-    out = []
-    b64 = base64.b64encode
-    t_ns, ids, flags = rows["t_ns"].tolist(), rows["can_id"].tolist(), rows["flags"].tolist()
-    dlcs, lens, data = rows["dlc"].tolist(), rows["length"].tolist(), rows["data"]
-    for k in range(len(rows)):
-        f = flags[k]
-        out.append((_CAN_JSON % (t_ns[k], ids[k], b[bool(f & 1)], b[bool(f & 2)], b[bool(f & 4)], b[bool(f & 8)],
-                                 b[bool(f & 16)], b[bool(f & 32)], "true", dlcs[k],
-                                 b64(data[k, :lens[k]].tobytes()).decode("ascii"), ch)).encode())
-    return out
-
-
-def can_frame_from_record(record: Mapping[str, Any]):
-    """The python-can ``Message`` back from a ``bsc.CanFrame`` dict (inverse of the above)."""
-    import can
-
-    return can.Message(
-        timestamp=record["t_ns"] / 1e9,
-        arbitration_id=record["arbitration_id"],
-        is_extended_id=record["is_extended_id"],
-        is_remote_frame=record["is_remote_frame"],
-        is_error_frame=record["is_error_frame"],
-        is_fd=record["is_fd"],
-        bitrate_switch=record["bitrate_switch"],
-        error_state_indicator=record.get("error_state_indicator", False),
-        is_rx=record.get("is_rx", True),
-        dlc=record["dlc"],
-        data=base64.b64decode(record["data"], validate=True),
-        channel=record["channel"] if record["channel"] != "" else None,
-    )
-
-
-def can_topic(bus: str) -> str:
-    """The topic of raw frames from logical bus ``bus`` (``ft0`` -> ``/can/ft0``)."""
-    if not bus or not all(c.isalnum() or c in "_-." for c in bus):
-        raise ValueError(f"bus name {bus!r}: use letters, digits, '_', '-', '.'")
-    return CAN_TOPIC_PREFIX + bus
-
-
-# ----------------------------------------------------------------------------- JSON schemas
-
-def json_schema_for(cls: type) -> dict[str, Any]:
-    """A JSON schema (draft 2020-12 subset that Foxglove reads) from a dataclass's type hints."""
-    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
-        raise TypeError(f"{cls!r} is not a dataclass type")
-    hints = typing.get_type_hints(cls)
-    props = {f.name: PAIRS_SCHEMA[pair_value_type(hints[f.name])] if pair_value_type(hints.get(f.name)) else
-             _type_schema(hints.get(f.name, Any)) for f in dataclasses.fields(cls)}
-    schema: dict[str, Any] = {"title": _qualname(cls), "type": "object", "properties": props,
-                              "required": list(props)}
-    doc = (cls.__doc__ or "").strip()
-    if doc and not doc.startswith(cls.__name__ + "("):   # skip dataclass's generated signature
-        schema["description"] = doc.split("\n\n")[0].replace("\n", " ")
-    return schema
-
-
-def _type_schema(tp: Any) -> dict[str, Any]:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is bool:
-        return {"type": "boolean"}
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        return {"enum": [m.value for m in tp]}
-    if tp is int:
-        return {"type": "integer"}
-    if tp is float:
-        return {"type": "number"}
-    if tp is str:
-        return {"type": "string"}
-    if tp in (bytes, bytearray):
-        return {"type": "string", "contentEncoding": "base64"}
-    if tp is type(None):
-        return {"type": "null"}
-    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
-        return json_schema_for(tp)
-    if origin in (typing.Union, types.UnionType):
-        return {"anyOf": [_type_schema(a) for a in args]}
-    if origin is tuple:
-        if len(args) == 2 and args[1] is Ellipsis:
-            return {"type": "array", "items": _type_schema(args[0])}
-        if args:
-            items = [_type_schema(a) for a in args]
-            out: dict[str, Any] = {"type": "array", "minItems": len(args), "maxItems": len(args)}
-            if all(i == items[0] for i in items):
-                out["items"] = items[0]          # a vector: Foxglove reads items, not prefixItems
-            else:
-                out["items"] = {}
-                out["prefixItems"] = items
-            return out
-        return {"type": "array"}
-    if origin in (list, collections.abc.Sequence, set, frozenset):
-        return {"type": "array", "items": _type_schema(args[0]) if args else {}}
-    if origin in (dict, collections.abc.Mapping):
-        return {"type": "object"}
-    return {}
-
-
-def pair_value_type(hint) -> type | None:
-    """``T`` when ``hint`` is ``tuple[tuple[str, T], ...]`` (named counts and values such as a
-    health's ``rejected`` or an alert's ``evidence``), else None. Such a field is written in JSON
-    as an array of ``{"name", "value"}`` objects (:func:`pairs_json`), not of two-item arrays:
-    Foxglove's schema loader takes no array of arrays."""
-    if typing.get_origin(hint) is not tuple:
-        return None
-    args = typing.get_args(hint)
-    if len(args) != 2 or args[1] is not Ellipsis or typing.get_origin(args[0]) is not tuple:
-        return None
-    inner = typing.get_args(args[0])
-    return inner[1] if len(inner) == 2 and inner[0] is str and inner[1] in (int, float) else None
-
-
-PAIRS_SCHEMA = {t: {"type": "array", "items": {
-    "type": "object", "properties": {"name": {"type": "string"}, "value": {"type": kind}},
-    "required": ["name", "value"]}} for t, kind in ((int, "integer"), (float, "number"))}
-
-
-def pairs_json(pairs) -> list[dict[str, Any]]:
-    return [{"name": k, "value": v} for k, v in pairs]
-
-
-def pairs_from_json(value) -> tuple:
-    """Back from :func:`pairs_json` (also the two-item arrays of a log written before it)."""
-    return tuple((d["name"], d["value"]) if isinstance(d, dict) else tuple(d) for d in value)
-
-
-def _dict_schema(example: Mapping[str, Any], name: str) -> dict[str, Any]:
-    kinds = {bool: "boolean", int: "integer", float: "number", str: "string",
-             list: "array", tuple: "array", dict: "object", type(None): "null"}
-    props = {str(k): ({"type": kinds[type(v)]} if type(v) in kinds else {})
-             for k, v in example.items()}
-    return {"title": name, "type": "object", "properties": props}
-
-
-def _qualname(cls: type) -> str:
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
-def _json_default(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        hints = typing.get_type_hints(type(obj))
-        return {f.name: pairs_json(getattr(obj, f.name)) if pair_value_type(hints.get(f.name))
-                else getattr(obj, f.name) for f in dataclasses.fields(obj)}
-    if isinstance(obj, (bytes, bytearray, memoryview)):
-        return base64.b64encode(bytes(obj)).decode("ascii")
-    if isinstance(obj, enum.Enum):
-        return obj.value
-    if hasattr(obj, "tolist"):           # numpy arrays and scalars
-        return obj.tolist()
-    raise TypeError(f"cannot record a {type(obj).__name__} as JSON")
-
-
-# Non-finite floats are written as the NaN/Infinity tokens (Python's json) rather than refused:
-# a recording keeps what the gateway saw, and our reader reads them back.
-_ENCODER = json.JSONEncoder(separators=(",", ":"), default=_json_default)
-_encode = _ENCODER.encode
-
-try:    # the C encoder JSONEncoder.encode builds on every call, built once (no cycle check: the
-        # records are flat frozen dataclasses); same bytes as _encode
-    from json.encoder import c_make_encoder as _c_make_encoder, encode_basestring_ascii as _ascii
-
-    _c_encode = _c_make_encoder(None, _json_default, _ascii, None, ":", ",", False, False, True) \
-        if _c_make_encoder is not None else None
-except ImportError:  # pragma: no cover - CPython always has it
-    _c_encode = None
-_DATACLASS_JSON: dict[type, Any] = {}
-
-
-def _dataclass_json(cls: type):
-    """``f(sample) -> str``: ``_encode({field: value, ...})`` for one dataclass type."""
-    f = _DATACLASS_JSON.get(cls)
-    if f is None:
-        names = _field_names(cls)
-        hints = typing.get_type_hints(cls)
-        pairs = {n for n in names if pair_value_type(hints.get(n))}
-        if _c_encode is None or not all(n.isidentifier() for n in names):
-            def f(sample, names=names):
-                return _encode({n: pairs_json(getattr(sample, n)) if n in pairs else getattr(sample, n)
-                                for n in names})
-        else:
-            ns = {"c": _c_encode, "join": "".join, "p": pairs_json}
-            exec("def f(o):\n    return join(c({" + ", ".join(  # noqa: S102
-                f"{n!r}: p(o.{n})" if n in pairs else f"{n!r}: o.{n}" for n in names) + "}, 0))\n", ns)
-            f = ns["f"]
-        _DATACLASS_JSON[cls] = f
-    return f
 
 
 # ----------------------------------------------------------------------------- statistics
@@ -563,10 +276,10 @@ class Recorder:
             if cls is not info.cls:
                 raise TypeError(f"topic {topic}: expected {info.cls.__name__}, "
                                 f"got {cls.__name__}")
-            data = _dataclass_json(cls)(sample)
-            t = sample.t_ns if log_time_ns is None and "t_ns" in _field_names(cls) else log_time_ns
+            data = dataclass_json(cls)(sample)
+            t = sample.t_ns if log_time_ns is None and "t_ns" in field_names(cls) else log_time_ns
         elif isinstance(sample, Mapping):
-            data = _encode(sample)
+            data = encode_json(sample)
             t = sample.get("t_ns") if log_time_ns is None else log_time_ns
         else:
             raise TypeError(f"topic {topic}: expected a mapping, got {cls.__name__}")
@@ -605,7 +318,7 @@ class Recorder:
         info = self._topics.get(topic)
         if info is None:
             with self._lock:
-                info = self._topics.get(topic) or self._new_topic(topic, _qualname(cls), json_schema_for(cls), cls)
+                info = self._topics.get(topic) or self._new_topic(topic, qualname(cls), json_schema_for(cls), cls)
         elif info.cls is not cls:
             raise TypeError(f"topic {topic}: expected {info.cls.__name__ if info.cls else 'records'}, "
                             f"got {cls.__name__}")
@@ -661,7 +374,7 @@ class Recorder:
             if topic in self._topics:
                 raise ValueError(f"topic {topic} is already declared")
             if isinstance(schema, type):
-                self._new_topic(topic, _qualname(schema), json_schema_for(schema), schema)
+                self._new_topic(topic, qualname(schema), json_schema_for(schema), schema)
             else:
                 name = schema_name or str(schema.get("title") or topic)
                 self._new_topic(topic, name, dict(schema), None)
@@ -831,10 +544,10 @@ class Recorder:
                 return self._topics[topic]
             cls = type(sample)
             if dataclasses.is_dataclass(cls):
-                return self._new_topic(topic, _qualname(cls), json_schema_for(cls), cls)
+                return self._new_topic(topic, qualname(cls), json_schema_for(cls), cls)
             if isinstance(sample, Mapping):
                 name = "bsc.record" + topic.replace("/", ".").rstrip(".")
-                return self._new_topic(topic, name, _dict_schema(sample, name), None)
+                return self._new_topic(topic, name, dict_schema(sample, name), None)
             raise TypeError(f"topic {topic}: cannot record a {cls.__name__} "
                             "(use a dataclass instance or a mapping)")
 
@@ -851,7 +564,7 @@ class Recorder:
         self._check_open()
         meta = dict(channel_metadata or {})
         if cls is not None:
-            meta["bsc.type"] = _qualname(cls)
+            meta["bsc.type"] = qualname(cls)
         info = _Topic(len(self._topic_list), topic, schema_name,
                       json.dumps({"$schema": JSON_SCHEMA_DIALECT, **schema}, indent=1).encode(), meta, cls)
         self._topic_list.append(info)
@@ -976,7 +689,7 @@ class Recorder:
             self._fail(exc)
 
     def _open_file(self) -> None:
-        from gateway.mcapwriter import McapWriter
+        from gateway.log.writer import McapWriter
 
         path = (self._base.with_name(f"{self._base.stem}_{len(self._paths):04d}"
                                      f"{self._base.suffix}") if self._rotating else self._base)
@@ -1054,16 +767,6 @@ class Recorder:
         self._writer = None
 
 
-_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
-
-
-def _field_names(cls: type) -> tuple[str, ...]:
-    names = _FIELD_NAMES.get(cls)
-    if names is None:
-        names = _FIELD_NAMES[cls] = tuple(f.name for f in dataclasses.fields(cls))
-    return names
-
-
 def _str_dict(name: str, data: Mapping[str, str]) -> dict[str, str]:
     if not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
         raise TypeError(f"metadata {name}: keys and values must be str")
@@ -1081,12 +784,3 @@ def _describe(exc: BaseException) -> str:
         where = f": {exc.filename}" if exc.filename else ""
         return f"[Errno {exc.errno}] {exc.strerror}{where}"
     return f"{type(exc).__name__}: {exc}"
-
-
-__all__ = [
-    "CAN_FRAME_SCHEMA", "CAN_SCHEMA_NAME", "CAN_TOPIC_PREFIX", "DBC_ATTACHMENT_PREFIX",
-    "DEFAULT_CHUNK_SIZE", "DEFAULT_FLUSH_INTERVAL_S", "DEFAULT_QUEUE_SIZE",
-    "RECORDING_METADATA", "SCENARIO_ATTACHMENT", "SESSION_METADATA", "URDF_ATTACHMENT",
-    "ZENOH_KEYS_METADATA", "Recorder", "RecorderError", "RecorderStats",
-    "can_frame_from_record", "can_frame_to_record", "can_topic", "json_schema_for",
-]

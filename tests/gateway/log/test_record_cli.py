@@ -23,7 +23,7 @@ from gateway import codec, keys, mcaplog
 from gateway.cli import main
 from gateway.commands.record import REJECTED_TOPIC, Recording
 from gateway.efforts import ThrusterEffort
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 from gateway.replay import read_context, session_context
 from gateway.zenoh_config import make_config
 
@@ -245,7 +245,7 @@ def test_an_alert_is_also_recorded_as_a_foxglove_log_line(tmp_path):
     """Foxglove's Log panel takes foxglove.Log on any topic: each alert bsc record receives is
     recorded as itself and as a log line at its severity's level (a cleared one at info)."""
     from gateway.efforts import Alert
-    from gateway.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA_NAME
+    from gateway.log.foxglove import ALERT_LOG_TOPIC, LOG_SCHEMA_NAME
 
     path = tmp_path / "a.mcap"
     alert = Alert(ROBOT, "actuator", "arm0/j2", "joint-friction-high", "critical", "raised", 1_000, 2_500_000_001,

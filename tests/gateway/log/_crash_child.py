@@ -2,7 +2,7 @@
 
 Prints ``flushed <n> received <n>`` lines (stats.flushed: messages in chunks the recorder has
 handed to the OS, which a SIGKILL cannot take back). Frame ``i`` carries ``i`` in its payload.
-Usage: python -m tests.gateway.recording._crash_child OUT.mcap RATE_HZ
+Usage: python -m tests.gateway.log._crash_child OUT.mcap RATE_HZ
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import time
 
 import can
 
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ import can
 import pytest
 
 from gateway import mcaplog
-from gateway.recorder import Recorder
+from gateway.log.recorder import Recorder
 
 PNG = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + bytes(13) + b"\0\0\0\0"
 

@@ -1,4 +1,4 @@
-"""The recorder's MCAP writer (gateway/mcapwriter.py) writes what mcap's own Writer writes."""
+"""The recorder's MCAP writer (gateway/log/writer.py) writes what mcap's own Writer writes."""
 from __future__ import annotations
 
 import io
@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from gateway import mcaplog
-from gateway.mcapwriter import McapWriter
+from gateway.log.writer import McapWriter
 
 
 def _calls(rnd: random.Random):
@@ -70,7 +70,7 @@ def test_byte_for_byte_what_the_library_writes(compression, seed):
 
 
 def test_a_recorder_file_is_complete_and_reads_back(tmp_path):
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     path = tmp_path / "s.mcap"
     with Recorder(path, chunk_size=4096) as rec:

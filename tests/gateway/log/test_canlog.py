@@ -15,8 +15,8 @@ import pytest
 
 from gateway import replay as rp
 from gateway.cli import main
-from gateway.engine import canlog
-from gateway.recorder import Recorder
+from gateway.log import canlog
+from gateway.log.recorder import Recorder
 
 EPOCH_NS = 1_767_225_600_000_000_000     # 2026-01-01: a real log's clock
 CHANNELS = {"arm0": "can0", "arm1": "can1", "spacecraft": "can2"}

@@ -351,7 +351,7 @@ class FrameTransforms:
 
 class TransformWriter:
     """Records a robot's :class:`FrameTransforms` on :data:`TF_TOPIC` into a
-    :class:`gateway.recorder.Recorder`, with the URDF on :data:`ROBOT_DESCRIPTION_TOPIC` at the
+    :class:`gateway.log.recorder.Recorder`, with the URDF on :data:`ROBOT_DESCRIPTION_TOPIC` at the
     log time of the first transforms of each file (the 3D panel's URDF layer takes the latest
     message on that topic; a rotated file gets its own copy). Not thread-safe: one caller at a
     time (:class:`gateway.commands.record.Recording` holds a lock)."""

@@ -13,8 +13,8 @@ import pytest
 
 import robot_description
 from gateway import mcaplog
-from gateway.foxglove import (FRAME_TRANSFORMS_SCHEMA_NAME, ROBOT_DESCRIPTION_TOPIC, TF_PERIOD_NS, TF_TOPIC,
-                              WORLD_FRAME, FrameTransforms)
+from gateway.log.foxglove import (FRAME_TRANSFORMS_SCHEMA_NAME, ROBOT_DESCRIPTION_TOPIC, TF_PERIOD_NS, TF_TOPIC,
+                                  WORLD_FRAME, FrameTransforms)
 
 # The recorded transforms come from the sensors, the truth from the simulator's state: they
 # differ by the IMU's attitude noise (0.002 deg, 1 sigma), the 20-bit encoders' steps (6e-6 rad)
@@ -32,7 +32,7 @@ def _simulated_session(path: Path, scenario: str, duration_s: float, *, samples:
     recording, as ``bsc sim --series`` records (``samples=False``: as a replay does)."""
     from gateway.engine import Session
     from gateway.engine.sinks import RecorderSink
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from robot_description.thrusters import ThrusterLayout
     from simulator import scenario as scenarios
     from simulator.engine import Simulation
@@ -203,7 +203,7 @@ def test_bsc_record_makes_the_transforms_from_the_zenoh_samples(tmp_path):
     from drivers.samples import ImuSample, JointSample
     from gateway import codec
     from gateway.commands.record import Recording
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
 
     robot = robot_description.load("paper_robot")
     path = tmp_path / "rec.mcap"
@@ -255,8 +255,8 @@ def test_each_rotated_file_gets_the_urdf(tmp_path):
     """A split recording: every file with transforms has the URDF too, at or before its first
     transforms (Foxglove opens one file at a time)."""
     from drivers.samples import ImuSample
-    from gateway.foxglove import TransformWriter
-    from gateway.recorder import Recorder
+    from gateway.log.foxglove import TransformWriter
+    from gateway.log.recorder import Recorder
 
     robot = robot_description.load("paper_robot")
     with Recorder(tmp_path / "split.mcap", chunk_size=1024, rotate_bytes=4096) as rec:
@@ -282,7 +282,7 @@ def test_bsc_record_over_zenoh_writes_the_transforms(tmp_path):
     from drivers.samples import ImuSample, JointSample
     from gateway import codec, keys
     from gateway.commands.record import Recording
-    from gateway.recorder import Recorder
+    from gateway.log.recorder import Recorder
     from gateway.zenoh_config import make_config
     from support import free_port
 

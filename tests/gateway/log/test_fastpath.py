@@ -12,7 +12,9 @@ import pytest
 
 from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, WrenchSample
 from gateway import mcaplog
-from gateway import recorder as rc
+from gateway.log import canframe, schema
+from gateway.log.names import CAN_TOPIC_PREFIX
+from gateway.log import recorder as rc
 from gateway import replay as rp
 from gateway.efforts import JointEfforts, ThrusterEffort
 
@@ -39,8 +41,8 @@ def test_prebuilt_json_encoder_gives_the_same_bytes():
     health's rejected as [{"name", "value"}] in both)."""
     seen_pairs = False
     for s in _samples(random.Random(1), 3000):
-        got = rc._dataclass_json(type(s))(s)
-        assert got == rc._encode(s)
+        got = schema.dataclass_json(type(s))(s)
+        assert got == schema.encode_json(s)
         seen_pairs |= '"rejected":[{"name":"dlc","value":1}' in got
     assert seen_pairs
 
@@ -83,7 +85,7 @@ def test_can_record_parser_equals_json(tmp_path, channel):
     got = list(rp.iter_can_frames(path))
     ref = []
     for topic, _, m in rp.iter_file_order(path):
-        ref.append((topic[len(rc.CAN_TOPIC_PREFIX):], m.log_time, rc.can_frame_from_record(json.loads(m.data))))
+        ref.append((topic[len(CAN_TOPIC_PREFIX):], m.log_time, canframe.can_frame_from_record(json.loads(m.data))))
     assert len(got) == len(ref) == len(msgs)
     for (b1, t1, m1), (b2, t2, m2) in zip(got, ref):
         assert (b1, t1) == (b2, t2)
@@ -100,7 +102,7 @@ def test_can_record_parser_refuses_what_json_refuses():
            b'"is_error_frame":false,"is_fd":false,"bitrate_switch":false,"error_state_indicator":false,'
            b'"is_rx":true,"dlc":0,"data":"","channel":"\x01"}']
     for raw in bad:
-        assert rp._CAN_RECORD.fullmatch(raw) is None
+        assert canframe._CAN_RECORD.fullmatch(raw) is None
         with pytest.raises(ValueError):
             json.loads(raw)
 
@@ -108,7 +110,8 @@ def test_can_record_parser_refuses_what_json_refuses():
 def test_can_frame_json_is_the_encoders_bytes():
     """The recorder's fast CAN-frame encoding gives exactly what encoding the record dict gives,
     for classic and FD frames, remote and error frames, every kind of channel."""
-    from gateway.recorder import _encode, can_frame_json, can_frame_to_record
+    from gateway.log.canframe import can_frame_json, can_frame_to_record
+    from gateway.log.schema import encode_json
 
     rng = random.Random(7)
     for _ in range(3000):
@@ -122,4 +125,4 @@ def test_can_frame_json_is_the_encoders_bytes():
                         data=bytes(rng.randrange(256) for _ in range(n)),
                         channel=rng.choice([None, "vcan0", "239.74.163.1", 3, 'we"ird\\ch', ("x", 1)]), check=False)
         rec = can_frame_to_record(m)
-        assert can_frame_json(m) == (rec["t_ns"], _encode(rec).encode())
+        assert can_frame_json(m) == (rec["t_ns"], encode_json(rec).encode())

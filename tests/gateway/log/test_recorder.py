@@ -11,8 +11,10 @@ from hypothesis import strategies as st
 
 from drivers.samples import ImuSample, JointSample, WrenchSample
 from gateway import mcaplog
-from gateway.recorder import (CAN_SCHEMA_NAME, Recorder, RecorderError,
-                              can_frame_from_record, can_frame_to_record, json_schema_for)
+from gateway.log.canframe import can_frame_from_record, can_frame_to_record
+from gateway.log.names import CAN_SCHEMA_NAME
+from gateway.log.recorder import Recorder, RecorderError
+from gateway.log.schema import json_schema_for
 
 WRENCH = WrenchSample("arm0", 1_000_000_000, 7, (1.0, -2.5, 3.0), (0.1, 0.2, -0.3), False, 4)
 
@@ -245,7 +247,7 @@ def test_rotation_by_duration(tmp_path, monkeypatch):
     import time as real_time
     import types
 
-    import gateway.recorder as recorder_module
+    import gateway.log.recorder as recorder_module
 
     clock = [0.0]                              # the recorder's monotonic clock, driven by hand
     fake = types.SimpleNamespace(monotonic=lambda: clock[0], time_ns=real_time.time_ns,
@@ -343,7 +345,7 @@ def test_frames_given_as_rows_are_recorded_as_their_messages():
     import can
 
     from drivers.kernel import columns_from_messages
-    from gateway.recorder import can_frame_json, can_frame_json_rows
+    from gateway.log.canframe import can_frame_json, can_frame_json_rows
 
     rnd = random.Random(4)
     msgs = []
@@ -367,7 +369,7 @@ def test_frames_given_as_rows_take_any_channel_a_bus_may_have(channel):
     import can
 
     from drivers.kernel import columns_from_messages
-    from gateway.recorder import can_frame_json, can_frame_json_rows
+    from gateway.log.canframe import can_frame_json, can_frame_json_rows
 
     msg = can.Message(timestamp=1.5, arbitration_id=0x123, data=b"\x01\x02", channel=channel)
     rows = columns_from_messages([(0, msg)])
@@ -378,13 +380,13 @@ def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_pa
     """record_encoded_many (the row sinks' path): a batch that declares new topics half way is
     written in its own order, and what the queue has no room for is refused and counted."""
     from gateway.efforts import Alert
-    from gateway.recorder import _dataclass_json
+    from gateway.log.schema import dataclass_json
     from gateway.replay import iter_file_order
 
     def alert(k):
         return Alert("r", "sensor", "imu", "x", "info", "raised", k, k, f"n{k}")
 
-    enc = _dataclass_json(Alert)
+    enc = dataclass_json(Alert)
     batch = [(f"/a/{k % 3}", Alert, enc(alert(k)).encode(), 10 + k) for k in range(9)]
     path = tmp_path / "b.mcap"
     with Recorder(path) as rec:

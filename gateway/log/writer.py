@@ -1,7 +1,7 @@
 """The recorder's MCAP writer: chunks that the caller ends, built without an object per message.
 
 The same file as ``mcap.writer.Writer`` (mcap 1.x) writes for the same calls, byte for byte
-(``tests/gateway/recording/test_mcapwriter.py`` compares them), with two differences of use:
+(``tests/gateway/log/test_mcapwriter.py`` compares them), with two differences of use:
 
 - a chunk ends only when the caller says (:meth:`McapWriter.end_chunk`), so the recorder knows
   exactly which messages are on disk;

@@ -1,0 +1,13 @@
+"""The session log: one place for the MCAP format bsc writes and reads.
+
+- :mod:`.names`: topics, metadata records, attachments, schema names;
+- :mod:`.schema`: the JSON form of a record and its JSON schema (the zenoh payloads use the same);
+- :mod:`.canframe`: the one CAN-frame codec (``bsc.CanFrame`` on ``/can/<bus>``);
+- :mod:`.writer`: the MCAP writer (mcap's public records, chunks ended by the caller);
+- :mod:`.recorder`: :class:`~gateway.log.recorder.Recorder`, a session to one file or a split series;
+- :mod:`.foxglove`: Foxglove's well-known schemas (alerts as ``foxglove.Log``, the frame tree on ``/tf``);
+- :mod:`.canlog`: CAN logs of other tools (candump, Vector, PEAK, python-can CSV) in and out.
+
+Reading (in file or log-time order), inspection and recovery: :mod:`gateway.mcaplog` and
+:mod:`gateway.replay`. The format is documented in ``docs/recording.md``.
+"""
