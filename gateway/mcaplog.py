@@ -123,15 +123,21 @@ def scan(path: str | os.PathLike[str],
         if not header_only:
             _preload_summary(result, path)
 
+        # the end of the last record that proved itself (a chunk whose CRC passed): a record after
+        # it with a damaged length (no CRC covers it) may have moved the walk into the middle of
+        # what followed, so a corrupt record is looked for, and reported, from here
+        verified = MAGIC_SIZE
+
         def bad(why: str) -> bool:
             """Pass over a corrupt record: True to go on from the next good chunk, False to stop."""
-            nonlocal offset
-            nxt = _resync(f, offset + 1, size) if result.header is not None else None
+            nonlocal offset, verified
+            start = min(offset, verified)
+            nxt = _resync(f, start + 1, size) if result.header is not None else None
             if nxt is None:
-                _stop(result, offset, why)
+                _stop(result, start, why)
                 return False
-            result.skipped.append((offset, nxt, why))
-            offset = nxt
+            result.skipped.append((start, nxt, why))
+            offset = verified = nxt
             f.seek(nxt)
             return True
 
@@ -172,9 +178,12 @@ def scan(path: str | os.PathLike[str],
                     inner = breakup_chunk(record, validate_crc=True)
                 except _PARSE_ERRORS as exc:
                     result.chunks_skipped += 1
-                    result.skipped.append((offset, offset + _RECORD_HEADER.size + length,
-                                           f"corrupt chunk: {exc}"))
+                    start = min(offset, verified)      # from the last proven record (see verified)
+                    verified = offset + _RECORD_HEADER.size + length       # (what is before: reported)
+                    result.skipped.append((start, verified, f"corrupt chunk: {exc}"))
                     inner = []
+                else:
+                    verified = offset + _RECORD_HEADER.size + length
                 for rec in inner:
                     _take(result, rec, on_message, on_record)
             elif isinstance(record, DataEnd):
