@@ -84,6 +84,7 @@ class Verdict:
     theta: float = float("nan")    # its size, fraction of nominal thrust
     theta_true: float = float("nan")
     commanded_duty: float = float("nan")   # the thruster's commanded open fraction, 0.5 s from the onset
+    commanded_after: float = float("nan")  # ... from the onset to the session's end
     false_alarms: int = 0          # alarms that name anything else
     # thruster wrench from the alarm to the end, band-limited (20 Hz) NRMSE against the truth
     # (RMS error / peak, the worst axis): the offline filter with the fault modelled, and what
@@ -128,6 +129,9 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
     after = (res.valve_t_ns >= on) & (res.valve_t_ns < on + 500_000_000)
     if after.any():
         v.commanded_duty = float(((res.valve_masks[after] >> j) & 1).mean())
+    after = res.valve_t_ns >= on
+    if after.any():
+        v.commanded_after = float(((res.valve_masks[after] >> j) & 1).mean())
     want = EXPECTED[case.fault]
     for a in res.alarms:
         if a.thruster == j and a.fault == want and not v.named:

@@ -274,10 +274,18 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
         if st[o + _F_STAGE] != CONFIRMING:
             continue
         st[o + _F_COUNT] += 1.0
-        if st[o + _F_COUNT] < cfg[_C_CONFIRM + int(st[o + _F_WIN])]:
+        confirm = cfg[_C_CONFIRM + int(st[o + _F_WIN])]
+        if st[o + _F_COUNT] < confirm:
             confirming = True
             continue
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+        # the type is a size test: while the size is within 3 of its standard errors
+        # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods)
+        edge = OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA
+        if (st[o + _F_COUNT] < 4.0 * confirm and st[o + _F_A] > 0.0
+                and abs(theta - edge) * math.sqrt(st[o + _F_A]) < 3.0):
+            confirming = True
+            continue
         typ = _fault_type(hyp % 2, theta)
         ne = int(st[_S_EVENTS])
         if ev0 + _NEV * (ne + 1) <= st.shape[0]:
@@ -292,7 +300,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
             st[_S_EVENTS] = ne + 1
         if typ == STUCK_OPEN:
             st[_S_OPEN] = float(int(st[_S_OPEN]) | (1 << (hyp // 2)))
-            st[o + _F_STAGE] = IN_FILTER
+            st[o + _F_STAGE] = TO_FILTER
         elif typ == STUCK_CLOSED:
             st[_S_CLOSED] = float(int(st[_S_CLOSED]) | (1 << (hyp // 2)))
             st[o + _F_STAGE] = IN_FILTER
@@ -383,9 +391,12 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
 
 @_jit
 def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
-    """Put confirmed partial losses into the filter: the valve's learned wrench less the lost
-    part, and room to refine it (its diagonal of P grows; P stays bitwise symmetric). The
-    stuck valves are modelled through :func:`valve_mask`."""
+    """Put confirmed faults into the filter. A partial loss: the valve's learned wrench less the
+    lost part, and room to refine it (its diagonal of P grows; P stays bitwise symmetric). A
+    stuck-open valve (modelled open through :func:`valve_mask`): its learned wrench scaled to the
+    size measured while it was confirmed (always open, its wrench can no longer be told from the
+    bias states, and a valve that had never fired still holds the nominal prior). A stuck-closed
+    valve needs only the mask."""
     n = int(cfg[_C_N])
     fbase = _S_HDR + 6 * 2 * n
     for f in range(int(st[_S_NFAULTS])):
@@ -396,10 +407,19 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
         f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
         t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+        st[o + _F_STAGE] = IN_FILTER
+        if int(st[o + _F_HYP]) % 2 == OPEN:
+            along = 0.0                       # the learned wrench's thrust along nominal, of nominal
+            for q in range(3):
+                along += x[6 * j + q] * Wnom[j, q]
+            along /= f2
+            if along > 0.0:
+                for q in range(6):
+                    x[6 * j + q] *= theta / along
+            continue
         for q in range(6):
             x[6 * j + q] -= theta * Wnom[j, q]
             P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
-        st[o + _F_STAGE] = IN_FILTER
 
 
 @_jit
