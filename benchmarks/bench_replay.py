@@ -89,7 +89,7 @@ def synthetic_steps(seconds: float):
 def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
     """``seconds`` of the default scenario recorded as the live gateway records it."""
     from gateway.log.recorder import Recorder
-    from gateway.replay import session_context
+    from gateway.log.context import session_context
 
     try:
         robot, steps = simulated_steps(seconds)
@@ -117,7 +117,7 @@ def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
 
 
 def _efforts(path: Path) -> list[tuple[str, bytes]]:
-    from gateway.replay import iter_file_order
+    from gateway.log.reader import iter_file_order
 
     return [(t, bytes(m.data)) for t, _, m in iter_file_order(path, lambda t, s: "/efforts/" in t)]
 
@@ -133,7 +133,8 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: i
     from gateway.engine import Session
     from gateway.engine.sources import mcap_frames
     from gateway.engine.warm import warm
-    from gateway.replay import OUTPUT_NAME, read_context, replay_offline, resolve_robot
+    from gateway.log.context import read_context, resolve_robot
+    from gateway.replay import OUTPUT_NAME, replay_offline
 
     out = {"label": "real pipeline", "real": True, "seconds": seconds}
     t0 = time.perf_counter()

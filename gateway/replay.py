@@ -19,7 +19,7 @@ them, even where timestamps of two buses interleave out of order. Log time (``t_
 the timing of live playback and the log time of every replayed emit.
 
 Bad input (empty, foreign, corrupt) raises :class:`ReplayError` or
-:class:`gateway.mcaplog.McapFileError`, both ``ValueError`` with one readable line; a truncated
+:class:`gateway.errors.McapFileError`, both ``ValueError`` with one readable line; a truncated
 file (killed recorder) is recovered into a temporary copy first (:func:`readable`).
 """
 from __future__ import annotations
@@ -29,15 +29,11 @@ import contextlib
 import dataclasses
 import fnmatch
 import heapq
-import io
 import json
 import os
 import re
-import struct
-import tempfile
 import threading
 import time
-import zlib
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -45,12 +41,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from gateway.errors import GatewayError
-from gateway import mcaplog
-from gateway.mcaplog import McapFileError
-from gateway.log.canframe import can_frame_from_json
-from gateway.log.names import (CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX, RECORDING_METADATA,
-                               SCENARIO_ATTACHMENT, SESSION_METADATA, URDF_ATTACHMENT)
+from gateway.log.context import LogContext, read_context, resolve_robot, session_context
+from gateway.log.errors import LogError, McapFileError
+from gateway.log.names import (CAN_TOPIC_PREFIX, DBC_ATTACHMENT_PREFIX, RECORDING_METADATA, SCENARIO_ATTACHMENT,
+                               SESSION_METADATA)
+from gateway.log.reader import Warn, iter_can_frames, iter_file_order, json_record, no_warn, readable
 
 REPORT_NAME = "report.json"
 OUTPUT_NAME = "replay.mcap"
@@ -59,436 +54,14 @@ REORDER_WINDOW_NS = 1_000_000_000   # live playback: messages are put in log-tim
 LATE_US = 500.0                # live playback: a message sent this much after its due time is late
 
 
-class ReplayError(GatewayError, ValueError):
+class ReplayError(LogError):
     """A log cannot be replayed as asked (nothing to replay, no robot, no pipeline...)."""
-
-
-Warn = Callable[[str], None]
-
-
-def _no_warn(_: str) -> None:
-    pass
 
 
 # ----------------------------------------------------------------------------- the log
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class LogContext:
-    """What a complete log says about itself (from its summary, metadata and attachments)."""
-
-    path: Path
-    metadata: dict[str, dict[str, str]]
-    attachments: dict[str, tuple[str, bytes]]      # name -> (media type, data)
-    topics: dict[str, str]                         # topic -> schema name
-    message_count: int
-    start_ns: int | None
-    end_ns: int | None
-
-    @property
-    def buses(self) -> list[str]:
-        """Logical CAN buses with a raw channel (``/can/<bus>``), in channel order."""
-        return [t[len(CAN_TOPIC_PREFIX):] for t, s in self.topics.items()
-                if t.startswith(CAN_TOPIC_PREFIX) and s == CAN_SCHEMA_NAME]
-
-    @property
-    def session(self) -> dict[str, str]:
-        return self.metadata.get(SESSION_METADATA, {})
-
-    @property
-    def urdf_text(self) -> str | None:
-        att = self.attachments.get(URDF_ATTACHMENT)
-        return att[1].decode("utf-8", "replace") if att else None
-
-    @property
-    def robot_name(self) -> str | None:
-        """``bsc.session`` ``robot``, else the URDF's ``<robot name=...>``."""
-        name = self.session.get("robot")
-        if name:
-            return name
-        m = re.search(r"<robot\b[^>]*\bname\s*=\s*[\"']([^\"']+)[\"']", self.urdf_text or "")
-        return m.group(1) if m else None
-
-    @property
-    def fd(self) -> bool:
-        return self.session.get("fd", "false").lower() == "true"
-
-    def window(self, start_s: float | None, duration_s: float | None) -> tuple[int | None, int | None]:
-        """``[start_ns, end_ns)`` from offsets relative to the log's first message."""
-        if start_s is not None and start_s < 0:
-            raise ReplayError(f"start {start_s} s: must be >= 0", option="start")
-        if duration_s is not None and duration_s <= 0:
-            raise ReplayError(f"duration {duration_s} s: must be positive", option="duration")
-        if self.start_ns is None:
-            return None, None
-        start = self.start_ns + round((start_s or 0.0) * 1e9) if start_s is not None else None
-        end = None
-        if duration_s is not None:
-            end = (start if start is not None else self.start_ns) + round(duration_s * 1e9)
-        return start, end
-
-
-def read_context(path: str | os.PathLike[str]) -> LogContext:
-    """The summary, metadata and attachments of a complete log (see :func:`readable`)."""
-    from mcap.reader import SeekingReader
-    from mcap.records import Attachment, Metadata
-
-    path = Path(path)
-    mcaplog.scan_header(path)
-    ok, why = mcaplog.check_footer(path)
-    if not ok:
-        raise McapFileError(f"{path}: file is truncated ({why}); run `bsc recover {path}` first")
-    from gateway.engine.sources import read_summary
-
-    try:
-        summary = read_summary(path)
-        if summary is None:                   # no summary section: the library walks the records
-            with open(path, "rb") as f:
-                reader = SeekingReader(f, validate_crcs=True)
-                metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-                attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
-            return LogContext(path, metadata, attachments, {}, 0, None, None)
-        metadata, attachments = {}, {}
-        with open(path, "rb") as f:           # the few records the summary points at
-            for off, ln, _ in summary.metadata:
-                rec = _record_at(f, off, ln, Metadata)
-                metadata[rec.name] = dict(rec.metadata)
-            for off, ln, _ in summary.attachments:
-                rec = _record_at(f, off, ln, Attachment)
-                attachments[rec.name] = (rec.media_type, rec.data)
-    except (mcaplog._PARSE_ERRORS + (struct.error,)) as exc:
-        raise McapFileError(f"{path}: corrupt summary ({exc}); `bsc recover {path}` "
-                            "rebuilds it") from exc
-    topics: dict[str, str] = {}
-    for topic, sid in summary.channels.values():
-        topics.setdefault(topic, summary.schemas.get(sid, ""))
-    return LogContext(path, metadata, attachments, topics, summary.message_count, summary.start_ns,
-                      summary.end_ns)
-
-
-def _record_at(f, offset: int, length: int, kind):
-    """The record of type ``kind`` (an ``mcap.records`` class) at ``offset`` of ``length`` bytes."""
-    from mcap.data_stream import ReadDataStream
-
-    f.seek(offset)
-    head = f.read(9)
-    if len(head) < 9:
-        raise ValueError(f"no record at offset {offset}")
-    (n,) = struct.unpack_from("<Q", head, 1)
-    body = f.read(n)
-    if len(body) < n or n + 9 != length:
-        raise ValueError(f"record at offset {offset} is cut short")
-    return kind.read(ReadDataStream(io.BytesIO(body)))
-
-
-@contextlib.contextmanager
-def readable(path: str | os.PathLike[str], warn: Warn = _no_warn) -> Iterator[Path]:
-    """A complete version of ``path``: itself, or (truncated: a killed recorder, a full disk) a
-    temporary recovered copy, after one warning line. Foreign / empty files raise
-    :class:`McapFileError`."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file")
-    if path.is_dir():
-        raise IsADirectoryError(f"{path}: is a directory, not an MCAP file")
-    mcaplog.scan_header(path)
-    ok, why = mcaplog.check_footer(path)
-    if ok:
-        yield path
-        return
-    with tempfile.TemporaryDirectory(prefix="bsc-replay-") as tmp:
-        report = mcaplog.recover(path, Path(tmp) / path.name)
-        if report.messages == 0:
-            raise ReplayError(f"{path}: truncated ({why}) and no complete message survives")
-        warn(f"{path} is truncated ({report.stop_reason or why}); replaying the "
-             f"{report.messages} messages recovered from it")
-        yield report.output
-
-
-class _Msg(NamedTuple):
-    log_time: int
-    data: bytes
-
-
-_RECORD = struct.Struct("<BQ")
-_MESSAGE_HEAD = struct.Struct("<HIQQ")        # channel id, sequence, log time, publish time
-_OP_CHANNEL, _OP_MESSAGE = 0x04, 0x05
-
-
-def _chunk_messages(chunk, chans: Mapping[int, Any]) -> list[tuple[int, int, bytes]] | None:
-    """``(channel id, log time, data)`` of every message of a chunk, parsed with ``struct``
-    (the library builds a Python record object per message, the slowest part of a replay).
-    ``None`` when the chunk needs the library: other compression, or a channel not yet known.
-    CRC and decompression errors raise as the library's would."""
-    if chunk.compression == "zstd":
-        import zstandard
-
-        data = zstandard.ZstdDecompressor().decompress(
-            chunk.data, max_output_size=chunk.uncompressed_size)
-    elif chunk.compression == "":
-        data = chunk.data
-    else:
-        return None
-    if len(data) != chunk.uncompressed_size:
-        raise ValueError(f"chunk decompressed to {len(data)} bytes, "
-                         f"{chunk.uncompressed_size} announced")
-    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
-        raise ValueError("chunk CRC mismatch")
-    out = []
-    append = out.append
-    rec_unpack = _RECORD.unpack_from
-    head_unpack = _MESSAGE_HEAD.unpack_from
-    off, end = 0, len(data)
-    while off < end:
-        op, length = rec_unpack(data, off)
-        body = off + 9
-        off = body + length
-        if off > end:
-            raise ValueError("record runs past the end of its chunk")
-        if op == _OP_MESSAGE:
-            cid, _, t, _ = head_unpack(data, body)
-            if cid not in chans:
-                return None
-            append((cid, t, data[body + 22:off]))
-        elif op == _OP_CHANNEL and _CHANNEL_ID.unpack_from(data, body)[0] not in chans:
-            return None
-    return out
-
-
-_CHANNEL_ID = struct.Struct("<H")
-
-
-class _ChunkHead(NamedTuple):
-    """The fields of a Chunk record (``mcap.records.Chunk`` without building one)."""
-
-    message_start_time: int
-    message_end_time: int
-    uncompressed_size: int
-    uncompressed_crc: int
-    compression: str
-    data: bytes
-
-
-_CHUNK_FIXED = struct.Struct("<QQQII")        # start, end, uncompressed size, crc, compression length
-_U64 = struct.Struct("<Q")
-_OP_MESSAGE_INDEX, _OP_CHUNK, _OP_DATA_END, _OP_FOOTER = 0x07, 0x06, 0x0F, 0x02
-_RECORD_LIMIT = 4 * 2 ** 30                   # the mcap StreamReader's default record size limit
-
-
-def _chunk_head(body: bytes) -> _ChunkHead:
-    start, end, size, crc, clen = _CHUNK_FIXED.unpack_from(body, 0)
-    compression = str(body[32:32 + clen], "utf-8")
-    (dlen,) = _U64.unpack_from(body, 32 + clen)
-    return _ChunkHead(start, end, size, crc, compression, body[40 + clen:40 + clen + dlen])
-
-
-def iter_file_order(path: str | os.PathLike[str], want: Callable[[str, str], bool] | None = None,
-                    start_ns: int | None = None, end_ns: int | None = None
-                    ) -> Iterator[tuple[str, str, Any]]:
-    """``(topic, schema_name, message)`` of a complete log in FILE (= recording) order;
-    ``message`` has ``log_time`` (ns) and ``data`` (bytes).
-
-    ``want(topic, schema_name)`` selects channels; ``[start_ns, end_ns)`` selects log times
-    (chunks wholly outside are skipped without decompressing them).
-
-    Records are walked here rather than by the library's StreamReader: message index records
-    (two integers per message, after every chunk) are skipped unread, chunks are parsed with
-    ``struct``; every other record (rare) goes through the library's parser.
-    """
-    import io
-
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
-    from mcap.stream_reader import StreamReader, breakup_chunk
-
-    path = Path(path)
-    schemas: dict[int, str] = {}
-    chans: dict[int, tuple[str, str] | None] = {}
-    known_ops = {int(op) for op in Opcode}
-
-    def register(rec) -> None:
-        if isinstance(rec, Channel):
-            name = schemas.get(rec.schema_id, "")
-            chans[rec.id] = (rec.topic, name) if want is None or want(rec.topic, name) else None
-        elif isinstance(rec, Schema):
-            schemas[rec.id] = rec.name
-
-    def corrupt(exc) -> McapFileError:
-        return McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
-                             "copies everything that is intact")
-
-    with open(path, "rb") as f:
-        # Channel and schema records live inside chunks (written before first use): take them
-        # from the summary, so that a chunk skipped for its time range cannot hide one.
-        try:
-            from mcap.reader import SeekingReader
-
-            summary = SeekingReader(f).get_summary()
-        except mcaplog._PARSE_ERRORS as exc:
-            raise McapFileError(f"{path}: corrupt summary ({exc}); `bsc recover {path}` "
-                                "rebuilds it") from exc
-        if summary is not None:
-            for sc in summary.schemas.values():
-                register(sc)
-            for ch in summary.channels.values():
-                register(ch)
-        f.seek(0)
-        if f.read(len(mcaplog.MAGIC)) != mcaplog.MAGIC:
-            raise corrupt("bad magic bytes")
-        read, unpack_head = f.read, _RECORD.unpack
-        while True:
-            head = read(9)
-            if len(head) < 9:
-                raise corrupt("end of file before the data end record")
-            op, length = unpack_head(head)
-            if length > _RECORD_LIMIT:
-                raise corrupt(f"record of {length} bytes")
-            if op == _OP_MESSAGE_INDEX:
-                f.seek(length, 1)
-                continue
-            body = read(length)
-            if len(body) < length:
-                raise corrupt("end of file inside a record")
-            if op == _OP_DATA_END or op == _OP_FOOTER:
-                return
-            try:
-                if op == _OP_CHUNK:
-                    rec = _chunk_head(body)
-                    if ((end_ns is not None and rec.message_start_time >= end_ns)
-                            or (start_ns is not None and rec.message_end_time < start_ns)):
-                        continue
-                    fast = _chunk_messages(rec, chans)
-                    if fast is not None:
-                        for cid, t, data in fast:
-                            ch = chans[cid]
-                            if (ch is not None and (start_ns is None or t >= start_ns)
-                                    and (end_ns is None or t < end_ns)):
-                                yield ch[0], ch[1], _Msg(t, data)
-                        continue
-                    inner = breakup_chunk(Chunk(**rec._asdict()), validate_crc=True)
-                elif op not in known_ops:
-                    continue                        # unknown record types are skipped
-                else:
-                    one = StreamReader(io.BytesIO(head + body), skip_magic=True, emit_chunks=True,
-                                       record_size_limit=None).records
-                    inner = (next(one),)
-            except mcaplog._PARSE_ERRORS as exc:
-                raise corrupt(exc) from exc
-            for r in inner:
-                if isinstance(r, Message):
-                    ch = chans.get(r.channel_id)
-                    t = r.log_time
-                    if (ch is not None and (start_ns is None or t >= start_ns)
-                            and (end_ns is None or t < end_ns)):
-                        yield ch[0], ch[1], r
-                elif isinstance(r, (DataEnd, Footer)):
-                    return
-                else:
-                    register(r)
-
-
-def _json(path: Path, topic: str, data: bytes) -> dict[str, Any]:
-    try:
-        obj = json.loads(data)
-    except ValueError as exc:
-        raise McapFileError(f"{path}: {topic}: a message is not JSON ({exc})") from None
-    if not isinstance(obj, dict):
-        raise McapFileError(f"{path}: {topic}: a message is not a JSON object")
-    return obj
-
-
-def iter_can_frames(path: Path, *, buses: Iterable[str] | None = None,
-                    can_ids: Iterable[int] | None = None, start_ns: int | None = None,
-                    end_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
-    """``(bus, t_ns, can.Message)`` of the raw CAN channels in recording order.
-
-    ``t_ns`` is the log time (the frame's own timestamp); ``msg.timestamp`` is ``t_ns / 1e9``,
-    which rounds back to exactly ``t_ns``.
-    """
-    bus_set = None if buses is None else {CAN_TOPIC_PREFIX + b for b in buses}
-    id_set = None if can_ids is None else frozenset(can_ids)
-
-    def want(topic: str, schema: str) -> bool:
-        return (schema == CAN_SCHEMA_NAME and topic.startswith(CAN_TOPIC_PREFIX)
-                and (bus_set is None or topic in bus_set))
-
-    cut = len(CAN_TOPIC_PREFIX)
-    buses_of: dict[str, str] = {}
-    for topic, _, m in iter_file_order(path, want, start_ns, end_ns):
-        bus = buses_of.get(topic)
-        if bus is None:
-            bus = buses_of[topic] = topic[cut:]
-        try:
-            msg = can_frame_from_json(m.data, id_set)
-        except ValueError as exc:
-            raise McapFileError(f"{path}: {topic}: a frame record is {exc}") from None
-        if msg is not None:
-            yield bus, m.log_time, msg
-
 
 # ----------------------------------------------------------------------------- robots
-
-def resolve_robot(ctx: LogContext, robot: str | None = None):
-    """The robot to decode with: ``robot`` (name or URDF path) if given, else the log's
-    ``robot.urdf`` attachment, else the built-in robot named in its metadata."""
-    import robot_description
-
-    if robot is not None:
-        return robot_description.load(robot)
-    name = ctx.robot_name
-    if ctx.urdf_text is not None:
-        return robot_description.from_urdf_text(ctx.urdf_text, name=name or "robot")
-    if name:
-        return robot_description.load(name)
-    raise ReplayError(f"{ctx.path}: the log names no robot (no {URDF_ATTACHMENT} attachment, "
-                      f"no robot in {SESSION_METADATA}): name the robot (a built-in name or a URDF file)",
-                      option="robot")
-
-
-def key_scheme(wire_map) -> dict[str, str]:
-    """Every zenoh key this robot's gateway publishes under, by name (the ``zenoh.keys``
-    metadata of a session)."""
-    from gateway import keys
-
-    robot = wire_map.robot
-    out = {"everything": keys.everything(robot), "sensors": keys.sensors(robot),
-           "observed_commands": keys.observed_commands(robot), "health": keys.health(robot),
-           "efforts": keys.efforts(robot), "imu": keys.imu(robot),
-           "thruster_command": keys.thruster_command(robot), "valve_command": keys.valve_command(robot),
-           "thruster_effort": keys.thruster_effort(robot), "alerts": keys.alerts(robot),
-           "health/device/imu": keys.device_health(robot, "imu"),
-           "health/device/thrusters": keys.device_health(robot, "thrusters")}
-    for name, spec in wire_map.buses.items():
-        out[f"health/bus/{name}"] = keys.bus_health(robot, name)
-        if spec.arm is None:
-            continue
-        arm = spec.arm
-        out[f"wrench/{arm}"] = keys.wrench(robot, arm)
-        out[f"joint_efforts/{arm}"] = keys.joint_efforts(robot, arm)
-        out[f"health/device/{arm}"] = keys.device_health(robot, arm)
-        for j in spec.joints:
-            dev = f"{arm}/{j}"
-            out[f"joint/{dev}"] = keys.joint(robot, dev)
-            out[f"torque_command/{dev}"] = keys.torque_command(robot, dev)
-            out[f"health/device/{dev}"] = keys.device_health(robot, dev)
-    return out
-
-
-def session_context(robot, *, fd: bool = False, scenario_text: str | None = None,
-                    dbc_files: Mapping[str, bytes | str] | None = None,
-                    extra: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """Keyword arguments for :meth:`Recorder.add_session_context` that make a log of this robot
-    replayable on its own: URDF, the DBCs, the key scheme, software version, robot name, fd."""
-    from drivers.wire import DBC_FILES, WireMap
-    from gateway import __version__
-
-    wm = WireMap.from_robot(robot)
-    dbcs = dict(dbc_files) if dbc_files is not None else {
-        p.name: p.read_text() for p in DBC_FILES.values()}
-    session = {"robot": robot.name, "fd": str(bool(fd)).lower(),
-               "buses": ",".join(wm.buses)}
-    session.update(extra or {})
-    return dict(urdf_text=robot.urdf, dbc_files=dbcs, scenario_text=scenario_text,
-                zenoh_keys=key_scheme(wm), software=f"bsc {__version__}", extra=session)
 
 
 # ----------------------------------------------------------------------------- offline
@@ -654,7 +227,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                    copy_can: bool = False, overwrite: bool = False, samples: bool = False,
                    check: bool = False,
                    pipeline_factory: Callable[..., Any] | None = None,
-                   progress: bool = False, warn: Warn = _no_warn) -> OfflineReport:
+                   progress: bool = False, warn: Warn = no_warn) -> OfflineReport:
     """Feed the raw frames of ``path`` through a fresh pipeline; write ``OUT/replay.mcap`` and
     ``OUT/report.json``; return the report.
 
@@ -1113,7 +686,7 @@ def play_can(path: str | os.PathLike[str], buses: Mapping[str, Any], *, rate: fl
              loop: bool = False, start_s: float | None = None, duration_s: float | None = None,
              can_ids: Iterable[int] | None = None, topics: Iterable[str] | None = None,
              stop: threading.Event | None = None, progress: bool = False,
-             warn: Warn = _no_warn) -> PlayStats:
+             warn: Warn = no_warn) -> PlayStats:
     """Send the raw frames of ``path`` on ``buses`` (logical bus -> open ``can.BusABC``) with
     their recorded spacing divided by ``rate`` (0: as fast as possible), in log-time order (each
     bus's frames keep their recorded order; see :func:`_time_ordered`). ``stats.late`` counts the
@@ -1173,7 +746,7 @@ _KEY_OK = re.compile(r"^[^/*$?#\s][^*$?#\s]*$")
 def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop: bool = False,
                start_s: float | None = None, duration_s: float | None = None,
                topics: Iterable[str] | None = None, stop: threading.Event | None = None,
-               progress: bool = False, wait_s: float = 0.0, warn: Warn = _no_warn) -> PlayStats:
+               progress: bool = False, wait_s: float = 0.0, warn: Warn = no_warn) -> PlayStats:
     """Republish the recorded samples, health, efforts and alerts of ``path`` on their keys
     (the topic is the key) with their recorded spacing divided by ``rate``.
 
@@ -1218,7 +791,7 @@ def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop
                 for topic, schema, m in iter_file_order(src, lambda t, s: t in wanted,
                                                         start_ns, end_ns):
                     cls = types_[schema]
-                    fields = _json(src, topic, m.data)
+                    fields = json_record(src, topic, m.data)
                     try:
                         payload = codec.encode(codec.decode(json.dumps(
                             {"type": cls.__name__, "v": codec.VERSION, **fields})))
@@ -1258,6 +831,5 @@ def parse_can_ids(specs: Iterable[str]) -> list[int]:
     return out
 
 
-__all__ = ["LogContext", "OfflineReport", "PlayStats", "ReplayError", "iter_can_frames",
-           "iter_file_order", "key_scheme", "parse_can_ids", "play_can", "play_zenoh",
-           "read_context", "readable", "replay_offline", "resolve_robot", "session_context"]
+__all__ = ["OfflineReport", "PlayStats", "ReplayError", "parse_can_ids", "play_can", "play_zenoh",
+           "replay_offline"]

@@ -180,7 +180,7 @@ def run_live(scenario, *, record: Path | None = None, progress: bool = False, ti
     wall0 = time.time_ns()
     if record is not None:
         rec = Recorder(record)
-        from gateway.replay import session_context
+        from gateway.log.context import session_context
         rec.add_session_context(**session_context(robot, scenario_text=scenario.text))
     t0 = time.perf_counter()
     waits = {"lockstep_s": 0.0, "gave_up": 0}

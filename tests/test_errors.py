@@ -41,7 +41,7 @@ def test_every_error_of_a_package_derives_from_its_root(package):
 
 def test_a_project_error_is_one_line_anything_else_is_a_bug(monkeypatch, capsys):
     from gateway import cli
-    from gateway.mcaplog import McapFileError
+    from gateway.log.errors import McapFileError
 
     class Command:
         def __init__(self, exc):

@@ -83,7 +83,8 @@ class FdiResult:
 
 
 def _layout_and_robot(src: Path, robot_name: str | None = None):
-    from gateway.replay import SCENARIO_ATTACHMENT, read_context, resolve_robot
+    from gateway.log.context import read_context, resolve_robot
+    from gateway.log.names import SCENARIO_ATTACHMENT
     from robot_description.thrusters import ThrusterLayout
 
     ctx = read_context(src)
@@ -100,7 +101,7 @@ def _decode(src: Path, ctx, rob, layout):
     """Sample rows and effort rows of the log's raw frames, through a fresh Session."""
     from gateway.engine import Session, Sink
     from gateway.engine.sources import mcap_frames
-    from gateway.replay import iter_can_frames
+    from gateway.log.reader import iter_can_frames
 
     samples: list[np.ndarray] = []
     efforts: list[np.ndarray] = []
@@ -223,15 +224,15 @@ def detect(stream: dict, core, layout, settings=None, max_events: int = 64):
 def analyze_thrusters(path: str | os.PathLike[str], *, robot: str | None = None, settings=None) -> FdiResult:
     """Thruster faults in the session log ``path`` (an MCAP log with raw CAN frames)."""
     from gateway.estimator import fdi
-    from gateway.mcaplog import McapFileError
-    from gateway.replay import ReplayError, readable
+    from gateway.log.errors import LogError
+    from gateway.log.reader import readable
 
     path = Path(path)
     try:
         with readable(path) as src:
             ctx, rob, layout = _layout_and_robot(Path(src), robot)
             samples, efforts, core = _decode(Path(src), ctx, rob, layout)
-    except (McapFileError, ReplayError, OSError) as exc:
+    except (LogError, OSError) as exc:
         raise AnalysisError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     stream = event_stream(samples, efforts, core)
     ev, stat, kf = detect(stream, core, layout, settings)

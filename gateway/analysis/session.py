@@ -169,7 +169,8 @@ def _topics_with_schemas(path: Path, schemas) -> list[str]:
     """Topics whose schema is one of ``schemas`` (raw CAN and samples are skipped unread)."""
     from mcap.reader import SeekingReader
 
-    from gateway.mcaplog import McapFileError, check_footer
+    from gateway.log.errors import McapFileError
+    from gateway.log.scan import check_footer
 
     ok, why = check_footer(path)
     if not ok:
@@ -187,7 +188,7 @@ def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
     from mcap.reader import SeekingReader
     from mcap.records import Metadata
 
-    from gateway.mcaplog import check_footer, scan
+    from gateway.log.scan import check_footer, scan
 
     if not check_footer(path)[0]:
         found: dict[str, dict[str, str]] = {}
@@ -208,8 +209,8 @@ def analyze_session(path: str | os.PathLike[str], *, thrusters: bool = True) -> 
     ``bsc replay`` does, with a note; one that is not an MCAP log at all raises AnalysisError.
     ``thrusters``: also look for thruster faults within the session (:mod:`.fdi`; needs the raw
     CAN frames, a note says when the log has none)."""
-    from gateway.mcaplog import McapFileError
-    from gateway.replay import ReplayError, readable
+    from gateway.log.errors import LogError
+    from gateway.log.reader import readable
 
     path = Path(path)
     notes: list[str] = []
@@ -227,7 +228,7 @@ def analyze_session(path: str | os.PathLike[str], *, thrusters: bool = True) -> 
                     feats.notes.append(f"{path}: thruster faults not checked: {exc}")
                 else:
                     feats.thruster_faults = [a.to_json() for a in found.alarms]
-    except (McapFileError, ReplayError, OSError) as exc:
+    except (LogError, OSError) as exc:
         raise AnalysisError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     feats.notes.extend(n.replace("replaying", "analysing") for n in notes)
     return feats
@@ -235,7 +236,8 @@ def analyze_session(path: str | os.PathLike[str], *, thrusters: bool = True) -> 
 
 def _analyze_file(path: Path, src: Path) -> SessionFeatures:
     """:func:`analyze_session` of the complete log ``src`` (``path`` itself, or its recovered copy)."""
-    from gateway.mcaplog import McapFileError, read_messages
+    from gateway.log.errors import McapFileError
+    from gateway.log.reader import read_messages
 
     try:
         meta = read_metadata(src)

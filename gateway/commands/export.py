@@ -32,7 +32,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from gateway.log import canlog
-    from gateway.replay import ReplayError, iter_can_frames, parse_can_ids, read_context, readable
+    from gateway.log.context import read_context
+    from gateway.log.reader import iter_can_frames, readable
+    from gateway.replay import ReplayError, parse_can_ids
 
     fmt = canlog.format_of_name(args.output)
     if fmt not in canlog.FORMATS:

@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
         rec = None
         if config.recording.path is not None:
             from gateway.log.recorder import Recorder
-            from gateway.replay import session_context
+            from gateway.log.context import session_context
 
             rec = stack.enter_context(Recorder(config.recording.path))
             # the layout the filter starts from, so that a replay of this log starts from it too

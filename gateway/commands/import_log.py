@@ -163,7 +163,7 @@ def info_lines(path, *, as_json: bool = False) -> str:
     from collections import Counter
 
     from gateway.log import canlog
-    from gateway.mcaplog import human_size
+    from gateway.log.scan import human_size
 
     stats = canlog.ImportStats(source=str(path), format=canlog.FORMATS[canlog.log_format(path)])
     first: dict[str, int] = {}          # per channel: earliest, latest, previous frame time

@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from gateway.mcaplog import human_size, inspect
+    from gateway.log.scan import human_size, inspect
 
     from gateway.log.canlog import is_can_log
 

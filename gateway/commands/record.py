@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
     from gateway import keys
     from gateway.cli import UserError
     from gateway.log.recorder import Recorder
-    from gateway.replay import session_context
+    from gateway.log.context import session_context
 
     _positive("--duration", args.duration)
     _positive("--split-size", args.split_size)

@@ -12,7 +12,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gateway.mcaplog import human_size, recover
+    from gateway.log.scan import human_size, recover
 
     report = recover(args.file, args.output, overwrite=args.force)
     state = ("was already complete" if report.was_complete and not report.damage

@@ -226,7 +226,9 @@ def _live_can(args: argparse.Namespace, can_ids) -> int:
 
     from gateway.commands import set_rt_priority, stop_on_sigterm
     from gateway.commands.gateway import channels, open_can
-    from gateway.replay import play_can, read_context, readable
+    from gateway.log.context import read_context
+    from gateway.log.reader import readable
+    from gateway.replay import play_can
 
     stop, restore = stop_on_sigterm()
     try:

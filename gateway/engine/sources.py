@@ -7,7 +7,7 @@ its offset from the summary's chunk index, decompressed (zstd or none) and CRC-c
 compiled pass walks its records and parses the recorder's own frame JSON (``Recorder.record_can``:
 one exact form) straight into rows. A record in any other form (another writer, another key
 order) is parsed by ``json`` instead, in its place; bad data raises
-:class:`gateway.mcaplog.McapFileError` naming the log and ``bsc recover``.
+:class:`gateway.errors.McapFileError` naming the log and ``bsc recover``.
 
 A log without a valid summary (a killed recorder) is read by the record-by-record reader
 (:func:`gateway.replay.iter_can_frames`), as before; ``bsc replay`` recovers a truncated log first.
@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit
 
 from gateway.log.canframe import KEYS
+from gateway.log.context import read_summary
 from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
@@ -34,84 +35,6 @@ _KEYS = KEYS                                  # the record's literal parts (gate
 _B64 = np.full(256, 255, dtype=np.uint8)
 for _i, _c in enumerate(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"):
     _B64[_c] = _i
-
-
-class _Chunk(NamedTuple):
-    start_ns: int
-    end_ns: int
-    offset: int
-    channels: frozenset
-
-
-class Summary(NamedTuple):
-    """What a log's summary section says, parsed with ``struct`` (the library builds an object
-    per record and a dict per chunk index: about 40 ms for an 8 s log)."""
-
-    schemas: dict            # schema id -> name
-    channels: dict           # channel id -> (topic, schema id)
-    chunks: list             # _Chunk per chunk
-    message_count: int
-    start_ns: int | None
-    end_ns: int | None
-    metadata: list           # (offset, length, name) of every metadata record
-    attachments: list        # (offset, length, name) of every attachment record
-
-
-def read_summary(path: Path) -> Summary | None:
-    """The summary of a complete log (None: it has none, or it is not readable)."""
-    u8, u4, u2 = struct.Struct("<Q"), struct.Struct("<I"), struct.Struct("<H")
-    with open(path, "rb") as f:
-        f.seek(0, 2)
-        size = f.tell()
-        if size < 8 + 29 + 8:
-            return None
-        f.seek(size - 8 - 29)
-        foot = f.read(29)
-        if foot[0] != 0x02:
-            return None
-        start, offset_start = struct.unpack_from("<QQ", foot, 9)
-        if start == 0 or start >= size:
-            return None
-        f.seek(start)
-        data = f.read((offset_start or size - 8 - 29) - start)
-
-    def string(p):
-        (n,) = u4.unpack_from(data, p)
-        return data[p + 4:p + 4 + n].decode("utf-8", "replace"), p + 4 + n
-
-    schemas, channels, chunks, meta, atts = {}, {}, [], [], []
-    count, t0s, t1s = 0, None, None
-    p = 0
-    while p + 9 <= len(data):
-        op = data[p]
-        (n,) = u8.unpack_from(data, p + 1)
-        b, p = p + 9, p + 9 + n
-        if p > len(data):
-            return None
-        if op == 0x03:                                       # Schema
-            (sid,) = u2.unpack_from(data, b)
-            schemas[sid], _ = string(b + 2)
-        elif op == 0x04:                                     # Channel
-            cid, sid = struct.unpack_from("<HH", data, b)
-            topic, _ = string(b + 4)
-            channels[cid] = (topic, sid)
-        elif op == 0x08:                                     # ChunkIndex
-            t0, t1, off, _ = struct.unpack_from("<QQQQ", data, b)
-            (m,) = u4.unpack_from(data, b + 32)
-            chans = frozenset(u2.unpack_from(data, b + 36 + 10 * k)[0] for k in range(m // 10))
-            chunks.append(_Chunk(t0, t1, off, chans))
-        elif op == 0x0B:                                     # Statistics
-            (count,) = u8.unpack_from(data, b)
-            t0s, t1s = struct.unpack_from("<QQ", data, b + 8 + 2 + 4 * 4)
-        elif op == 0x0D:                                     # MetadataIndex
-            off, ln = struct.unpack_from("<QQ", data, b)
-            meta.append((off, ln, string(b + 16)[0]))
-        elif op == 0x0A:                                     # AttachmentIndex
-            off, ln = struct.unpack_from("<QQ", data, b)
-            atts.append((off, ln, string(b + 40)[0]))
-    if not count:
-        t0s = t1s = None
-    return Summary(schemas, channels, chunks, count, t0s, t1s, meta, atts)
 
 
 class FrameChunk(NamedTuple):
@@ -304,7 +227,7 @@ def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: 
                 can_ids=None) -> Iterator[FrameChunk] | None:
     """The raw frames of ``buses`` (``bus`` = index into it), chunk by chunk in file order; None
     when the log has no usable summary (read it with :func:`gateway.replay.iter_can_frames`)."""
-    from gateway.mcaplog import McapFileError
+    from gateway.log.errors import McapFileError
     from gateway.log.canframe import can_frame_from_record
     from gateway.log.names import CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX
 

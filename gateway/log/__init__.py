@@ -6,8 +6,12 @@
 - :mod:`.writer`: the MCAP writer (mcap's public records, chunks ended by the caller);
 - :mod:`.recorder`: :class:`~gateway.log.recorder.Recorder`, a session to one file or a split series;
 - :mod:`.foxglove`: Foxglove's well-known schemas (alerts as ``foxglove.Log``, the frame tree on ``/tf``);
+- :mod:`.context`: what a log says about itself (the robot, DBCs, key scheme, ``bsc.session``):
+  written (:func:`~gateway.log.context.session_context`) and read back (``read_context``);
+- :mod:`.reader`: the one reader, in file or log-time order, and the raw CAN frames on it;
+- :mod:`.scan`: the record-level walk: ``bsc info`` (inspect) and ``bsc recover``;
+- :mod:`.errors`: :class:`~gateway.log.errors.LogError`, :class:`~gateway.log.errors.McapFileError`;
 - :mod:`.canlog`: CAN logs of other tools (candump, Vector, PEAK, python-can CSV) in and out.
 
-Reading (in file or log-time order), inspection and recovery: :mod:`gateway.mcaplog` and
-:mod:`gateway.replay`. The format is documented in ``docs/recording.md``.
+The format is documented in ``docs/recording.md``; replaying a log is :mod:`gateway.replay`'s.
 """

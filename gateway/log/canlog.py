@@ -394,7 +394,7 @@ def import_log(path: str | os.PathLike[str], out: str | os.PathLike[str], robot,
     leaves no output) when nothing maps to a bus or a ``--bus`` channel is not in the file."""
     from drivers.wire import WireMap
     from gateway.log.recorder import Recorder
-    from gateway.replay import session_context
+    from gateway.log.context import session_context
 
     path, out = Path(path), Path(out)
     buses = list(WireMap.from_robot(robot).buses)

@@ -141,7 +141,7 @@ def test_every_command_that_opens_a_bus_takes_the_flags(plugin, session, tmp_pat
     assert proc.returncode == 0, proc.stderr
     assert [(c["channel"], c["bitrate"]) for c in calls] == [
         ("bsc-arm0", 500_000), ("bsc-arm1", 500_000), ("bsc-spacecraft", 500_000)]
-    from gateway.replay import read_context
+    from gateway.log.context import read_context
 
     assert read_context(tmp_path / "r.mcap").session["bus_rates"] == "bitrate 500000"   # the log says
     from drivers.canbus import BusOptions
@@ -180,6 +180,6 @@ def test_gateway_opens_its_buses_with_the_flags_and_says_so(plugin, tmp_path):
     assert [(c["channel"], c["bitrate"], c["serial"]) for c in calls] == [
         ("bsc-arm0", 500_000, 3), ("bsc-arm1", 500_000, 3), ("bsc-spacecraft", 500_000, 3)]
     assert "(receive: threads); bitrate 500000" in proc.stdout
-    from gateway.replay import read_context
+    from gateway.log.context import read_context
 
     assert read_context(tmp_path / "g.mcap").session["bus_rates"] == "bitrate 500000"

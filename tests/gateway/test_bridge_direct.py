@@ -332,7 +332,9 @@ def test_direct_mode_recording_replays_to_the_same_efforts(sessions, rig, tmp_pa
     recorder keeps the frames in the order the worker fed them, across buses (a batch merged by
     time from several buses must not be written bus by bus)."""
     from gateway.log.recorder import Recorder
-    from gateway.replay import OUTPUT_NAME, iter_file_order, replay_offline, session_context
+    from gateway.log.context import session_context
+    from gateway.log.reader import iter_file_order
+    from gateway.replay import OUTPUT_NAME, replay_offline
 
     pub_s, _ = sessions
     path = tmp_path / "live.mcap"
@@ -460,7 +462,7 @@ def test_health_before_the_first_frame_is_logged_at_the_time_it_was_taken(sessio
     carry the time they were taken, not log time 0 (a 60 s live recording started in 1970 with
     84 of them); after the first frame, health carries the frames' log time."""
     from gateway.log.recorder import Recorder
-    from gateway.replay import iter_file_order
+    from gateway.log.reader import iter_file_order
 
     pub_s, _ = sessions
     path = tmp_path / "h.mcap"

@@ -64,8 +64,7 @@ def test_a_demo_session_is_dated_by_the_wall_clock_of_its_run(tmp_path):
     import datetime
     import time
 
-    from gateway import mcaplog
-
+    from gateway.log import scan
     before = time.time_ns()
     r = bsc("demo", "--duration", "0.3", "--no-sweep", "--report-only", "--quiet", "--out", str(tmp_path / "d"))
     after = time.time_ns()
@@ -78,7 +77,7 @@ def test_a_demo_session_is_dated_by_the_wall_clock_of_its_run(tmp_path):
         if channel.topic.startswith("/can/"):
             frame_t.append(json.loads(msg.data)["t_ns"])
 
-    res = mcaplog.scan(path, on_message=on_message)
+    res = scan.scan(path, on_message=on_message)
     assert len(times) > 1000 and before <= min(times) and max(times) <= after
     assert min(frame_t) < 10**9                                    # the frames' own simulated times
     assert res.attachments and all(before <= a.log_time <= after for a in res.attachments)

@@ -117,7 +117,7 @@ def test_recorder_sink_writes_rows_in_the_order_they_were_fed(robot, frames, tmp
     across buses) are written in that order, not bus by bus."""
     from gateway.engine.sinks import RecorderSink
     from gateway.log.recorder import Recorder
-    from gateway.replay import iter_can_frames
+    from gateway.log.reader import iter_can_frames
 
     pairs = frames[:200]
     with Session(robot) as probe:

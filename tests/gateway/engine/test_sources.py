@@ -12,9 +12,9 @@ import pytest
 
 import robot_description
 from drivers.kernel import columns_from_messages
-from gateway import replay as rp
+from gateway.log import context, reader
 from gateway.engine.sources import mcap_frames
-from gateway.mcaplog import McapFileError
+from gateway.log.errors import McapFileError
 from gateway.log.canframe import can_frame_to_record
 from gateway.log.recorder import Recorder
 
@@ -42,7 +42,7 @@ def log(tmp_path_factory):
     pairs = _messages(20_000, 1)
     robot = robot_description.load("paper_robot")
     with Recorder(path, queue_size=1 << 20, chunk_size=64 * 1024) as rec:
-        rec.add_session_context(**rp.session_context(robot))
+        rec.add_session_context(**context.session_context(robot))
         for k, (bus, msg) in enumerate(pairs):
             if k % 997 == 5:               # another writer: keys in another order
                 rec.record(f"/can/{bus}", dict(reversed(list(can_frame_to_record(msg).items()))),
@@ -55,7 +55,7 @@ def log(tmp_path_factory):
 
 
 def _want(path, buses, **kw):
-    got = list(rp.iter_can_frames(path, buses=buses, **kw))
+    got = list(reader.iter_can_frames(path, buses=buses, **kw))
     rows = columns_from_messages([(buses.index(b), m) for b, _, m in got])
     rows["t_ns"] = [round(m.timestamp * 1e9) for _, _, m in got]
     return rows, np.array([t for _, t, _ in got], dtype=np.int64)

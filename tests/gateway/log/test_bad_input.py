@@ -8,7 +8,7 @@ import zlib
 import can
 import pytest
 
-from gateway import mcaplog
+from gateway.log import errors, reader, scan
 from gateway.log.recorder import Recorder
 
 PNG = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + bytes(13) + b"\0\0\0\0"
@@ -58,9 +58,9 @@ def test_bad_file_table(name, good, tmp_path, bsc):
     path = tmp_path / "bad.mcap"
     path.write_bytes(make(good))
     if outcome == "error":
-        for call in (lambda: mcaplog.inspect(path), lambda: mcaplog.recover(path),
-                     lambda: list(mcaplog.read_messages(path))):
-            with pytest.raises(mcaplog.McapFileError, match=message):
+        for call in (lambda: scan.inspect(path), lambda: scan.recover(path),
+                     lambda: list(reader.read_messages(path))):
+            with pytest.raises(errors.McapFileError, match=message):
                 call()
         for cmd in ("info", "recover"):
             proc = bsc(cmd, path, timeout=30)
@@ -70,13 +70,14 @@ def test_bad_file_table(name, good, tmp_path, bsc):
             assert proc.stderr.startswith(f"bsc {cmd}: error: ")
         assert not (tmp_path / "bad.recovered.mcap").exists()
         return
-    info = mcaplog.inspect(path)
+    info = scan.inspect(path)
     assert not info.complete
-    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
-        list(mcaplog.read_messages(path))
-    report = mcaplog.recover(path)
-    assert mcaplog.inspect(report.output).complete
-    frames = [int.from_bytes(m.data, "little") for _, m in mcaplog.read_can_frames(report.output)]
+    with pytest.raises(errors.McapFileError, match="bsc recover"):
+        list(reader.read_messages(path))
+    report = scan.recover(path)
+    assert scan.inspect(report.output).complete
+    frames = [int.from_bytes(m.data, "little")
+              for _, _, m in reader.iter_can_frames(report.output, log_time_order=True)]
     if name == "flipped byte in a chunk":
         assert report.chunks_skipped == 1 and 0 < len(frames) < 400
         assert frames == sorted(frames)
@@ -103,7 +104,7 @@ def test_recover_refuses_to_overwrite(good, tmp_path, bsc):
     proc = bsc("recover", src, "-o", src)
     assert proc.returncode == 2 and "overwrite the file being recovered" in proc.stderr
     assert bsc("recover", src, "-o", out, "--force").returncode == 0
-    assert mcaplog.inspect(out).complete
+    assert scan.inspect(out).complete
 
 
 def test_crc_of_summary_is_checked(good, tmp_path):
@@ -112,7 +113,7 @@ def test_crc_of_summary_is_checked(good, tmp_path):
     (crc,) = struct.unpack("<I", good[footer_crc_at:footer_crc_at + 4])
     assert crc != 0 and crc == zlib.crc32(good[_summary_start(good):footer_crc_at])
     path.write_bytes(_flip(good, _summary_start(good) + 20))     # inside the summary
-    ok, why = mcaplog.check_footer(path)
+    ok, why = scan.check_footer(path)
     assert not ok and "CRC" in why
 
 
@@ -141,7 +142,7 @@ def long_log(tmp_path_factory):
 
 def _messages(path):
     out = []
-    mcaplog.scan(path, on_message=lambda ch, m: out.append((ch.topic, m.log_time, bytes(m.data))))
+    scan.scan(path, on_message=lambda ch, m: out.append((ch.topic, m.log_time, bytes(m.data))))
     return out
 
 
@@ -189,14 +190,14 @@ def test_recover_keeps_every_intact_chunk_after_damage_in_the_middle(long_log, t
 
     want = sum(len(messages_of(c)) for c in intact)
 
-    report = mcaplog.recover(bad, tmp_path / "rec.mcap")
+    report = scan.recover(bad, tmp_path / "rec.mcap")
     kept = _messages(tmp_path / "rec.mcap")
     original = set(_messages(long_log))
     assert all(m in original for m in kept)
     assert len(kept) >= 0.99 * want, (len(kept), want, report.damage)
     assert report.damage and report.bytes_skipped > 0
 
-    info = mcaplog.inspect(bad)
+    info = scan.inspect(bad)
     assert not info.complete and info.status.startswith("damaged: ")
     # truthful: a chunk that lost messages lies in a reported region; one that was not reported
     # kept every message (a flip in its header's time fields, which no CRC covers, harms nothing)

@@ -13,7 +13,7 @@ from pathlib import Path
 import can
 import pytest
 
-from gateway import replay as rp
+from gateway.log import context, reader
 from gateway.cli import main
 from gateway.log import canlog
 from gateway.log.recorder import Recorder
@@ -56,7 +56,7 @@ def candump(tmp_path_factory) -> Path:
 def efforts(path: Path) -> dict[str, list[tuple[int, bytes]]]:
     """Every effort message (log time, bytes) of a replay output, by topic, in file order."""
     out: dict[str, list] = {}
-    for topic, _, m in rp.iter_file_order(path, lambda t, s: "/efforts/" in t):
+    for topic, _, m in reader.iter_file_order(path, lambda t, s: "/efforts/" in t):
         out.setdefault(topic, []).append((m.log_time, bytes(m.data)))
     return out
 
@@ -75,7 +75,7 @@ def session(candump, tmp_path_factory) -> Path:
 
 
 def test_import_writes_a_session_every_tool_takes(candump, session, tmp_path, capsys):
-    ctx = rp.read_context(session)
+    ctx = context.read_context(session)
     assert ctx.buses == list(CHANNELS) and ctx.robot_name == "paper_robot" and ctx.urdf_text
     assert ctx.session["imported_from"] == "robot.log"
     assert main(["info", str(session)]) == 0
@@ -87,7 +87,7 @@ def test_import_writes_a_session_every_tool_takes(candump, session, tmp_path, ca
     assert report["source"] == str(candump) and report["import"]["frames_written"] == report["frames_in"]
     assert report["good_efforts"] > 0.9 * report["efforts"] > 0
     # the log's order and times: the frames are the file's, one for one
-    frames = [(b, t, m.arbitration_id, bytes(m.data)) for b, t, m in rp.iter_can_frames(session)]
+    frames = [(b, t, m.arbitration_id, bytes(m.data)) for b, t, m in reader.iter_can_frames(session)]
     stats = canlog.ImportStats("", "")
     logged = [(b, t, m.arbitration_id, bytes(m.data))
               for b, t, m in canlog.import_frames(candump, list(CHANNELS), dict(CHANNELS), stats)]
@@ -208,7 +208,7 @@ def test_a_truncated_blf_keeps_what_it_holds(session, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "Traceback" not in err and "the file ends early (truncated" in err
     assert "truncated" in report["import"]["ended_early"]
-    total = sum(1 for _ in rp.iter_can_frames(session))
+    total = sum(1 for _ in reader.iter_can_frames(session))
     assert 0 < report["frames_in"] == report["import"]["frames_read"] < total
     # what it holds is the session's beginning, replayed as the whole session replays it
     whole, _ = replay(tmp_path, "whole", blf, *args)
@@ -325,8 +325,8 @@ def test_export_a_window_and_ids(session, tmp_path, capsys):
     out = tmp_path / "w.asc"
     assert main(["export", str(session), "-o", str(out), "--start", "0.1", "--duration", "0.05",
                  "--can-id", "0x300,0x301", "-q"]) == 0
-    t0 = rp.read_context(session).start_ns
-    want = [(t, m.arbitration_id) for _, t, m in rp.iter_can_frames(session)
+    t0 = context.read_context(session).start_ns
+    want = [(t, m.arbitration_id) for _, t, m in reader.iter_can_frames(session)
             if t0 + 100_000_000 <= t < t0 + 150_000_000 and m.arbitration_id in (0x300, 0x301)]
     got = [(t, m.arbitration_id) for _, t, m in canlog.read_log(out)]
     assert got == want and len(got) > 50

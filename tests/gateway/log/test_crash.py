@@ -16,8 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway import mcaplog
-
+from gateway.log import reader, scan
 REPO = Path(__file__).resolve().parents[3]
 
 
@@ -51,17 +50,18 @@ def test_sigkill_mid_run_then_recover(tmp_path):
     assert child.returncode == -signal.SIGKILL
     assert last_flushed >= 6000
 
-    before = mcaplog.inspect(path)
+    before = scan.inspect(path)
     assert not before.complete                  # killed: no summary, no footer
-    report = mcaplog.recover(path, tmp_path / "recovered.mcap")
+    report = scan.recover(path, tmp_path / "recovered.mcap")
     assert not report.was_complete
     print(f"had written (flushed) {last_flushed}, recovered {report.messages}")
     assert report.messages >= 0.999 * last_flushed
     assert report.messages >= last_flushed      # in fact nothing flushed is lost
-    after = mcaplog.inspect(report.output)
+    after = scan.inspect(report.output)
     assert after.complete and after.message_count == report.messages
     assert "robot.urdf" in {a["name"] for a in after.attachments}
     assert {"bsc.recording", "bsc.session", "bsc.recover"} <= set(after.metadata)
     # Every recovered frame is intact and they form one unbroken prefix 0..n-1.
-    payloads = [int.from_bytes(m.data, "little") for _, m in mcaplog.read_can_frames(report.output)]
+    payloads = [int.from_bytes(m.data, "little")
+                for _, _, m in reader.iter_can_frames(report.output, log_time_order=True)]
     assert payloads == list(range(report.messages))

@@ -11,11 +11,11 @@ import can
 import pytest
 
 from drivers.samples import BusHealth, DeviceHealth, ImuSample, JointSample, WrenchSample
-from gateway import mcaplog
+from gateway.log import scan
 from gateway.log import canframe, schema
 from gateway.log.names import CAN_TOPIC_PREFIX
 from gateway.log import recorder as rc
-from gateway import replay as rp
+from gateway.log import reader
 from gateway.efforts import JointEfforts, ThrusterEffort
 
 
@@ -48,7 +48,7 @@ def test_prebuilt_json_encoder_gives_the_same_bytes():
 
 
 def _content(path):
-    return [(t, s, m.log_time, bytes(m.data)) for t, s, m in rp.iter_file_order(path)]
+    return [(t, s, m.log_time, bytes(m.data)) for t, s, m in reader.iter_file_order(path)]
 
 
 def test_record_walker_reads_what_a_full_scan_reads(tmp_path):
@@ -59,9 +59,9 @@ def test_record_walker_reads_what_a_full_scan_reads(tmp_path):
             rec.record(f"/t/{k % 5}", {"t_ns": k, "v": k * 0.5}) if k % 11 == 0 else \
                 rec.record(f"/s/{type(s).__name__}", s, log_time_ns=5_000 + k)
     ref = []
-    mcaplog.scan(path, lambda ch, m: ref.append((ch.topic, m.log_time, bytes(m.data))))
+    scan.scan(path, lambda ch, m: ref.append((ch.topic, m.log_time, bytes(m.data))))
     assert [(t, lt, d) for t, _, lt, d in _content(path)] == ref
-    window = [(t, lt, d) for t, _, m in rp.iter_file_order(path, lambda t, s: t.startswith("/s/"), 6000, 7000)
+    window = [(t, lt, d) for t, _, m in reader.iter_file_order(path, lambda t, s: t.startswith("/s/"), 6000, 7000)
               for lt, d in [(m.log_time, bytes(m.data))]]
     assert window == [x for x in ref if x[0].startswith("/s/") and 6000 <= x[1] < 7000]
 
@@ -82,9 +82,9 @@ def test_can_record_parser_equals_json(tmp_path, channel):
     with rc.Recorder(path) as rec:
         for m in msgs:
             rec.record_can("bus0", m)
-    got = list(rp.iter_can_frames(path))
+    got = list(reader.iter_can_frames(path))
     ref = []
-    for topic, _, m in rp.iter_file_order(path):
+    for topic, _, m in reader.iter_file_order(path):
         ref.append((topic[len(CAN_TOPIC_PREFIX):], m.log_time, canframe.can_frame_from_record(json.loads(m.data))))
     assert len(got) == len(ref) == len(msgs)
     for (b1, t1, m1), (b2, t2, m2) in zip(got, ref):

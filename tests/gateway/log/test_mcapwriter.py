@@ -8,7 +8,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from gateway import mcaplog
+from gateway.log import scan
 from gateway.log.writer import McapWriter
 
 
@@ -76,7 +76,7 @@ def test_a_recorder_file_is_complete_and_reads_back(tmp_path):
     with Recorder(path, chunk_size=4096) as rec:
         for k in range(5000):
             rec.record("/t", {"t_ns": k, "v": k * 0.25}, log_time_ns=1_000 + k)
-    info = mcaplog.inspect(path)
+    info = scan.inspect(path)
     assert info.complete and rec.stats.written == 5000 and rec.stats.chunks > 10
     with open(path, "rb") as f:
         got = [(m.log_time, m.data) for _, _, m in make_reader(f).iter_messages(topics=["/t"])]

@@ -19,13 +19,14 @@ import zenoh
 import robot_description
 from drivers import frames, wire
 from drivers.samples import JointSample, WrenchSample
-from gateway import codec, keys, mcaplog
+from gateway import codec, keys
 from gateway.cli import main
 from gateway.commands.record import REJECTED_TOPIC, Recording
 from gateway.efforts import ThrusterEffort
 from gateway.log.recorder import Recorder
-from gateway.replay import read_context, session_context
+from gateway.log.context import read_context, session_context
 from gateway.zenoh_config import make_config
+from gateway.log import reader, scan
 
 from .conftest import REPO
 from support import free_port as _free_port
@@ -92,7 +93,7 @@ def test_recording_can_and_zenoh(tmp_path):
     assert "CAN frames: 200 (arm0 100, spacecraft 100)" in lines[0]
     assert "undecodable 1" in lines[2] and "type_conflict 1" in lines[2]
 
-    info = mcaplog.inspect(path)
+    info = scan.inspect(path)
     assert info.complete
     by_topic = {c.topic: c for c in info.channels}
     assert by_topic["/can/arm0"].schema_name == "bsc.CanFrame"
@@ -100,12 +101,12 @@ def test_recording_can_and_zenoh(tmp_path):
     assert by_topic[keys.thruster_effort(ROBOT)].schema_name == "gateway.efforts.ThrusterEffort"
     assert by_topic[REJECTED_TOPIC].count == 2
     for b in names:
-        got = [bytes(m.data) for bb, m in mcaplog.read_can_frames(path, [b])]
+        got = [bytes(m.data) for _, _, m in reader.iter_can_frames(path, buses=[b], log_time_order=True)]
         assert got == sent[b]
-    got = [mcaplog.to_dataclass(WrenchSample, m.data)
-           for m in mcaplog.read_messages(path, [keys.wrench(ROBOT, "arm0")])]
+    got = [reader.to_dataclass(WrenchSample, m.data)
+           for m in reader.read_messages(path, [keys.wrench(ROBOT, "arm0")])]
     assert got == samples
-    rej = [m.data for m in mcaplog.read_messages(path, [REJECTED_TOPIC])]
+    rej = [m.data for m in reader.read_messages(path, [REJECTED_TOPIC])]
     assert {r["reason"] for r in rej} == {"undecodable", "type_conflict"}
     assert base64.b64decode(next(r for r in rej if r["reason"] == "undecodable")["payload"]) \
         == b"not json at all"
@@ -139,7 +140,7 @@ def test_sigterm_finishes_the_file(tmp_path):
     assert proc.returncode == 0, err
     assert err == ""
     assert "CAN frames: 0" in rest and f"wrote {out}" in rest
-    info = mcaplog.inspect(out)
+    info = scan.inspect(out)
     assert info.complete
     assert {"bsc.recording", "bsc.session", "zenoh.keys"} <= set(info.metadata)
     assert info.metadata["bsc.session"]["robot"] == ROBOT
@@ -154,7 +155,7 @@ def test_duration_zenoh_and_split_naming(tmp_path, capsys):
     assert "zenoh samples: 0" in cap.out and "zenoh rejected: 0" in cap.out
     first = tmp_path / "z_0000.mcap"
     assert f"wrote {first}" in cap.out
-    assert mcaplog.inspect(first).complete
+    assert scan.inspect(first).complete
     assert json.loads(json.dumps(read_context(first).metadata["bsc.session"]))["robot"] == ROBOT
 
 
@@ -234,8 +235,8 @@ def test_a_full_disk_stops_the_recording_at_once_with_one_error(tmp_path):
         size = int(line.split(" bytes")[0].rsplit(" ", 1)[1])
         assert size == out.stat().st_size > 100_000, (line, out.stat().st_size)
         assert "stopped: " in line and "write error " in line
-        fixed = mcaplog.recover(out, tmp_path / "fixed.mcap")
-        got = sum(1 for _ in mcaplog.read_messages(tmp_path / "fixed.mcap", [key]))
+        fixed = scan.recover(out, tmp_path / "fixed.mcap")
+        got = sum(1 for _ in reader.read_messages(tmp_path / "fixed.mcap", [key]))
         assert got == fixed.messages == in_file > 100, (got, fixed.messages, in_file)
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
@@ -254,12 +255,12 @@ def test_an_alert_is_also_recorded_as_a_foxglove_log_line(tmp_path):
         recording = Recording(rec, {}, None, None)
         for a in (alert, dataclasses.replace(alert, state="cleared", t_ns=3_000_000_000)):
             recording.on_payload(keys.alerts(ROBOT), codec.encode(a))
-    logs = list(mcaplog.read_messages(path, [ALERT_LOG_TOPIC]))
+    logs = list(reader.read_messages(path, [ALERT_LOG_TOPIC]))
     assert [m.schema_name for m in logs] == [LOG_SCHEMA_NAME] * 2
     assert [m.log_time_ns for m in logs] == [2_500_000_001, 3_000_000_000] and logs[1].data["level"] == 2
     first = logs[0].data
     assert first["timestamp"] == {"sec": 2, "nsec": 500_000_001} and first["level"] == 4
     assert first["name"] == f"bsc/{ROBOT}/actuator/arm0/j2 [joint-friction-high]"
     assert first["message"] == "raised critical: friction 182 N m > 150"
-    alerts = list(mcaplog.read_messages(path, [keys.alerts(ROBOT)]))
+    alerts = list(reader.read_messages(path, [keys.alerts(ROBOT)]))
     assert len(alerts) == len(logs)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.samples import ImuSample, JointSample, WrenchSample
-from gateway import mcaplog
+from gateway.log import errors, reader, scan
 from gateway.log.canframe import can_frame_from_record, can_frame_to_record
 from gateway.log.names import CAN_SCHEMA_NAME
 from gateway.log.recorder import Recorder, RecorderError
@@ -84,7 +84,7 @@ def test_records_read_back_in_log_time_order_with_schemas(tmp_path):
                                                      i, 0.1 * i, 0.0))
         rec.record("/misc", {"t_ns": 1_000_500_000, "note": "dict record", "x": 1.5})
     assert rec.stats.dropped == 0 and rec.stats.written == rec.stats.flushed == 601
-    info = mcaplog.inspect(path)
+    info = scan.inspect(path)
     assert info.complete and info.message_count == 601
     assert {c.topic: c.count for c in info.channels} == {"/can/ft0": 300, "/samples/joint": 300,
                                                         "/misc": 1}
@@ -92,7 +92,7 @@ def test_records_read_back_in_log_time_order_with_schemas(tmp_path):
     assert info.metadata["zenoh.keys"] == {"wrench": "bsc/ft/*"}
     assert {a["name"] for a in info.attachments} == {"robot.urdf", "dbc/ft.dbc", "scenario.toml",
                                                      "notes.txt"}
-    msgs = list(mcaplog.read_messages(path))
+    msgs = list(reader.read_messages(path))
     times = [m.log_time_ns for m in msgs]
     assert times == sorted(times)
     can_msgs = [m for m in msgs if m.topic == "/can/ft0"]
@@ -100,7 +100,7 @@ def test_records_read_back_in_log_time_order_with_schemas(tmp_path):
     assert [int.from_bytes(m.can_message().data[:4], "little") for m in can_msgs] == list(range(300))
     assert [m.sequence for m in can_msgs] == list(range(300))
     joint = [m for m in msgs if m.topic == "/samples/joint"]
-    sample = mcaplog.to_dataclass(JointSample, joint[5].data)
+    sample = reader.to_dataclass(JointSample, joint[5].data)
     assert sample == JointSample("arm0/j1", 1_010_000_001, 5, 0.5, 0.0)
 
 
@@ -111,15 +111,15 @@ def test_typed_sample_round_trip_and_every_channel_has_a_json_schema(tmp_path):
     with Recorder(path) as rec:
         rec.record("/samples/wrench/arm0", WRENCH)
     with open(path, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
+        mcap_reader = make_reader(f)
+        summary = mcap_reader.get_summary()
         for ch in summary.channels.values():
             assert ch.message_encoding == "json"
             schema = summary.schemas[ch.schema_id]
             assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
-    (m,) = mcaplog.read_messages(path, ["/samples/wrench/arm0"])
+    (m,) = reader.read_messages(path, ["/samples/wrench/arm0"])
     assert m.log_time_ns == WRENCH.t_ns
-    assert mcaplog.to_dataclass(WrenchSample, m.data) == WRENCH
+    assert reader.to_dataclass(WrenchSample, m.data) == WRENCH
 
 
 def test_time_window_filters(tmp_path):
@@ -127,10 +127,10 @@ def test_time_window_filters(tmp_path):
     with Recorder(path) as rec:
         for i in range(100):                        # one frame per 10 ms from t = 1 s
             rec.record_can("b", _frame(0), log_time_ns=1_000_000_000 + i * 10_000_000)
-    window = list(mcaplog.read_messages(path, start_s=0.2, duration_s=0.1))
+    window = list(reader.read_messages(path, start_s=0.2, duration_s=0.1))
     assert [m.log_time_ns for m in window] == [1_200_000_000 + i * 10_000_000 for i in range(10)]
-    absolute = list(mcaplog.read_can_frames(path, start_ns=1_500_000_000, end_ns=1_520_000_000))
-    assert [bus for bus, _ in absolute] == ["b", "b"]
+    absolute = list(reader.iter_can_frames(path, start_ns=1_500_000_000, end_ns=1_520_000_000, log_time_order=True))
+    assert [bus for bus, _, _ in absolute] == ["b", "b"]
 
 
 def test_notifier_listener_records_frames_from_a_virtual_bus(tmp_path):
@@ -155,7 +155,7 @@ def test_notifier_listener_records_frames_from_a_virtual_bus(tmp_path):
             assert got.wait(5)
         finally:
             notifier.stop()
-    frames = [m for _, m in mcaplog.read_can_frames(path)]
+    frames = [m for _, _, m in reader.iter_can_frames(path, log_time_order=True)]
     assert [bytes(m.data) for m in frames] == [bytes(_frame(i).data) for i in range(20)]
 
 
@@ -192,7 +192,7 @@ def test_existing_file_is_not_clobbered(tmp_path):
         Recorder(path)
     assert path.read_bytes() == b"precious"
     Recorder(path, overwrite=True).close()
-    assert mcaplog.inspect(path).complete
+    assert scan.inspect(path).complete
 
 
 def test_queue_full_is_counted_never_silent(tmp_path):
@@ -214,7 +214,7 @@ def test_queue_full_is_counted_never_silent(tmp_path):
     final = rec.stats
     assert final.written == final.flushed == results.count(True)
     assert final.received + final.dropped_queue_full == 50
-    assert mcaplog.inspect(rec.paths[0]).message_count == final.written
+    assert scan.inspect(rec.paths[0]).message_count == final.written
 
 
 def test_rotation_by_size_each_file_self_contained(tmp_path):
@@ -230,16 +230,16 @@ def test_rotation_by_size_each_file_self_contained(tmp_path):
     assert [p.name for p in paths] == [f"rot_{i:04d}.mcap" for i in range(len(paths))]
     total = 0
     for p in paths:
-        info = mcaplog.inspect(p)
+        info = scan.inspect(p)
         assert info.complete
         assert {"bsc.recording", "zenoh.keys"} <= set(info.metadata)
         assert [a["name"] for a in info.attachments] == ["robot.urdf"]
         assert [c.topic for c in info.channels] == ["/can/ft0"]
         total += info.message_count
     assert total == 3000 == rec.stats.flushed
-    assert "midway" in mcaplog.inspect(paths[-1]).metadata
-    assert "midway" not in mcaplog.inspect(paths[0]).metadata
-    indexes = [mcaplog.inspect(p).metadata["bsc.recording"]["file_index"] for p in paths]
+    assert "midway" in scan.inspect(paths[-1]).metadata
+    assert "midway" not in scan.inspect(paths[0]).metadata
+    indexes = [scan.inspect(p).metadata["bsc.recording"]["file_index"] for p in paths]
     assert indexes == [str(i) for i in range(len(paths))]
 
 
@@ -258,7 +258,7 @@ def test_rotation_by_duration(tmp_path, monkeypatch):
             clock[0] = float(i)                # 30 "seconds" of recording, one frame each
             rec.record_can("b", _frame(i))
             assert rec.flush(5)
-    counts = [mcaplog.inspect(p).message_count for p in rec.paths]
+    counts = [scan.inspect(p).message_count for p in rec.paths]
     assert len(counts) == 3 and sum(counts) == 30
 
 
@@ -289,15 +289,15 @@ def test_full_disk_keeps_what_was_written(tiny_fs):
     assert finished, "expected at least one rotated file before the disk filled"
     recovered = 0
     for p in finished:
-        info = mcaplog.inspect(p)
+        info = scan.inspect(p)
         assert info.complete
         recovered += info.message_count
     if last.stat().st_size > 0:
         out = tiny_fs.parent / "recovered.mcap"
         try:
-            report = mcaplog.recover(last, out)
+            report = scan.recover(last, out)
             recovered += report.messages
-        except mcaplog.McapFileError:
+        except errors.McapFileError:
             pass                               # the disk filled before the header was written
     # Everything counted as flushed is back. The chunk in flight when the disk filled is counted
     # as dropped; it comes back too if the chunk record itself was complete (only its index or
@@ -320,7 +320,7 @@ def test_many_producer_threads_lose_nothing(tmp_path):
     assert rec.stats.flushed == 12000 and rec.stats.dropped == 0
     for k in range(4):
         frames = [int.from_bytes(m.data[:4], "little")
-                  for _, m in mcaplog.read_can_frames(path, [f"b{k}"])]
+                  for _, _, m in reader.iter_can_frames(path, buses=[f"b{k}"], log_time_order=True)]
         assert frames == list(range(3000))
 
 
@@ -332,9 +332,9 @@ def test_flushed_data_is_in_the_file_while_recording(tmp_path):
             rec.record_can("ft0", _frame(i))
         assert rec.flush(10)
         assert rec.stats.flushed == 100
-        live = mcaplog.inspect(path)              # the file is still open: no footer yet
+        live = scan.inspect(path)              # the file is still open: no footer yet
         assert not live.complete and live.message_count == 100 and "m" in live.metadata
-    assert mcaplog.inspect(path).complete
+    assert scan.inspect(path).complete
 
 
 def test_frames_given_as_rows_are_recorded_as_their_messages():
@@ -381,7 +381,7 @@ def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_pa
     written in its own order, and what the queue has no room for is refused and counted."""
     from gateway.efforts import Alert
     from gateway.log.schema import dataclass_json
-    from gateway.replay import iter_file_order
+    from gateway.log.reader import iter_file_order
 
     def alert(k):
         return Alert("r", "sensor", "imu", "x", "info", "raised", k, k, f"n{k}")

@@ -24,8 +24,9 @@ import robot_description
 from drivers import frames, wire
 from drivers.devices import listeners_for
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
-from gateway import codec, keys, mcaplog
+from gateway import codec, keys
 from gateway import replay as rp
+from gateway.log import context, errors, reader, scan
 from gateway.cli import main
 from gateway.efforts import JointEfforts, ThrusterEffort
 from gateway.log.recorder import Recorder
@@ -169,7 +170,7 @@ def record_live(path: Path, robot, frame_list, pipeline_cls=StandInPipeline):
     emit recorded under its key. Returns ``[(key, codec payload)]`` of the emits."""
     emitted = []
     with Recorder(path, queue_size=1 << 22) as rec:
-        rec.add_session_context(**rp.session_context(robot, extra={"mode": "test live"}))
+        rec.add_session_context(**context.session_context(robot, extra={"mode": "test live"}))
 
         def emit(key, obj):
             emitted.append((key, codec.encode(obj)))
@@ -188,7 +189,7 @@ def record_live(path: Path, robot, frame_list, pipeline_cls=StandInPipeline):
 def efforts_by_topic(path: Path) -> dict[str, list[bytes]]:
     """Raw MCAP message bytes of every effort channel, in file order."""
     out: dict[str, list[bytes]] = {}
-    for topic, _, m in rp.iter_file_order(path, lambda t, s: "/efforts/" in t):
+    for topic, _, m in reader.iter_file_order(path, lambda t, s: "/efforts/" in t):
         out.setdefault(topic, []).append(bytes(m.data))
     return out
 
@@ -227,9 +228,9 @@ def test_offline_replay_efforts_are_byte_identical(session, robot, tmp_path):
     assert 0 < report.good_efforts < report.efforts          # warm-up ones are not good
     assert report.samples == sum(1 for k, _ in emitted if "/sensors/" in k)
     # every other emitted payload too, in order
-    got = [(t, codec.encode(mcaplog.to_dataclass(codec.TYPES[s.rsplit(".", 1)[1]],
+    got = [(t, codec.encode(reader.to_dataclass(codec.TYPES[s.rsplit(".", 1)[1]],
                                                  json.loads(m.data))))
-           for t, s, m in rp.iter_file_order(tmp_path / "out" / rp.OUTPUT_NAME,
+           for t, s, m in reader.iter_file_order(tmp_path / "out" / rp.OUTPUT_NAME,
                                              lambda t, s: "/health/" not in t)]
     assert got == [(k, p) for k, p in emitted if "/health/" not in k]
     saved = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())
@@ -242,8 +243,8 @@ def test_log_time_order_would_not_be_deterministic(session, robot):
     were recorded in) changes the efforts, because arm efforts use the latest IMU sample."""
     path, fl, _ = session
     ours, other = [], []
-    for order, sink in ((rp.iter_can_frames(path), ours),
-                        (((b, 0, m) for b, m in mcaplog.read_can_frames(path)), other)):
+    for order, sink in ((reader.iter_can_frames(path), ours),
+                        (reader.iter_can_frames(path, log_time_order=True), other)):
         pipe = StandInPipeline(robot, emit=lambda k, o, sink=sink: sink.append(codec.encode(o))
                                if isinstance(o, JointEfforts) else None)
         for bus, _, msg in order:
@@ -254,7 +255,7 @@ def test_log_time_order_would_not_be_deterministic(session, robot):
 
 def test_replayed_frames_keep_their_nanosecond_times(session):
     path, fl, _ = session
-    got = [(b, round(m.timestamp * 1e9), bytes(m.data)) for b, _, m in rp.iter_can_frames(path)]
+    got = [(b, round(m.timestamp * 1e9), bytes(m.data)) for b, _, m in reader.iter_can_frames(path)]
     assert got == [(b, round(m.timestamp * 1e9), bytes(m.data)) for b, m in fl]
 
 
@@ -280,7 +281,7 @@ def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(
     live = efforts_by_topic(path)
 
     def topics(p):
-        return [t for t, _, _ in rp.iter_file_order(p, lambda t, s: True)]
+        return [t for t, _, _ in reader.iter_file_order(p, lambda t, s: True)]
 
     plain = rp.replay_offline(path, tmp_path / "plain")
     out = tmp_path / "plain" / rp.OUTPUT_NAME
@@ -293,7 +294,8 @@ def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(
     assert efforts_by_topic(out) == live
 
     def frames(p):
-        return [(t, m.log_time, bytes(m.data)) for t, _, m in rp.iter_file_order(p, lambda t, s: t.startswith("/can/"))]
+        return [(t, m.log_time, bytes(m.data))
+                for t, _, m in reader.iter_file_order(p, lambda t, s: t.startswith("/can/"))]
 
     assert frames(out) == frames(path) and len(frames(path)) == full.frames_in
 
@@ -307,7 +309,7 @@ def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40):
     seen = [0]
     with Recorder(path, queue_size=1 << 22) as rec:
         extra = {"kernels": kernels} if kernels is not None else {}
-        rec.add_session_context(**rp.session_context(robot, extra=extra))
+        rec.add_session_context(**context.session_context(robot, extra=extra))
 
         def emit(key, obj):
             if isinstance(obj, JointEfforts):
@@ -330,7 +332,7 @@ def test_check_finds_the_replay_identical_to_live(robot, tmp_path, capsys):
     from gateway.cli import main
 
     log = _live_log(tmp_path / "live.mcap", robot)
-    assert rp.read_context(log).metadata["bsc.session"]["kernels"] == KERNELS
+    assert context.read_context(log).metadata["bsc.session"]["kernels"] == KERNELS
     assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert f"check: all {efforts_count(log)} efforts byte-identical to the log's (kernels v{KERNELS})" in out
@@ -427,11 +429,11 @@ def test_a_replay_that_fails_part_way_leaves_no_complete_looking_output(robot, t
     out = tmp_path / "out"
     rp.replay_offline(log, out)                                  # an earlier, good output
     before = (out / rp.OUTPUT_NAME).read_bytes()
-    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
+    with pytest.raises(errors.McapFileError, match="bsc recover"):
         rp.replay_offline(bad, out, overwrite=True)
     assert (out / rp.OUTPUT_NAME).read_bytes() == before
     assert not [p for p in out.iterdir() if p.name.endswith(".part")]
-    with pytest.raises(mcaplog.McapFileError, match="bsc recover"):
+    with pytest.raises(errors.McapFileError, match="bsc recover"):
         rp.replay_offline(bad, tmp_path / "fresh")
     assert not (tmp_path / "fresh" / rp.OUTPUT_NAME).exists()
     assert not [p for p in (tmp_path / "fresh").iterdir() if p.name.endswith(".part")]
@@ -654,8 +656,8 @@ def test_truncated_log_is_recovered_with_a_warning(session, tmp_path, capsys, st
     assert rc == 0, cap.err
     assert cap.err.count("\n") == 1 and "truncated" in cap.err and "recovered" in cap.err
     report = json.loads((tmp_path / "o" / "report.json").read_text())
-    rec = mcaplog.recover(cut, tmp_path / "r.mcap")
-    n = sum(1 for _ in mcaplog.read_can_frames(rec.output))
+    rec = scan.recover(cut, tmp_path / "r.mcap")
+    n = sum(1 for _ in reader.iter_can_frames(rec.output, log_time_order=True))
     assert report["source_recovered"] and report["frames_in"] == n and 0 < n < len(fl)
 
 

@@ -12,7 +12,7 @@ import pinocchio as pin
 import pytest
 
 import robot_description
-from gateway import mcaplog
+from gateway.log import reader
 from gateway.log.foxglove import (FRAME_TRANSFORMS_SCHEMA_NAME, ROBOT_DESCRIPTION_TOPIC, TF_PERIOD_NS, TF_TOPIC,
                                   WORLD_FRAME, FrameTransforms)
 
@@ -83,7 +83,7 @@ def test_end_effector_poses_from_tf_match_the_simulated_truth(three_arm_session)
     path, sim = three_arm_session
     robot, tr = sim.robot, sim.trace.arrays
     model, data = robot.model, robot.data()
-    msgs = list(mcaplog.read_messages(path, [TF_TOPIC]))
+    msgs = list(reader.read_messages(path, [TF_TOPIC]))
     assert 45 <= len(msgs) <= 50                        # 1 s at 50 Hz
     t_s, q_true = tr["t_s"][: sim.k], tr["q"][: sim.k]
     worst_p = worst_r = 0.0
@@ -115,7 +115,7 @@ def test_end_effector_poses_from_tf_match_the_simulated_truth(three_arm_session)
 def test_frame_ids_are_the_urdf_links_and_the_urdf_is_in_the_log(three_arm_session):
     path, sim = three_arm_session
     links = {j.child for j in robot_description.urdf_joints(sim.robot.urdf)} | {"spacecraft"}
-    msgs = list(mcaplog.read_messages(path, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
+    msgs = list(reader.read_messages(path, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
     assert msgs[0].topic == ROBOT_DESCRIPTION_TOPIC and msgs[1].topic == TF_TOPIC
     assert msgs[0].log_time_ns == msgs[1].log_time_ns                 # there when the first transforms are
     assert msgs[0].data == {"data": sim.robot.urdf, "robot": "three_arm"}
@@ -193,8 +193,8 @@ def test_a_replay_and_a_series_session_carry_the_transforms(tmp_path, bsc):
     session = out / "session_0000.mcap"
     r = bsc("replay", session, "--out", tmp_path / "replay", "--quiet", timeout=300)
     assert r.returncode == 0, r.stderr
-    rec = [(m.log_time_ns, m.data) for m in mcaplog.read_messages(session, [TF_TOPIC])]
-    rep = [(m.log_time_ns, m.data) for m in mcaplog.read_messages(tmp_path / "replay" / "replay.mcap", [TF_TOPIC])]
+    rec = [(m.log_time_ns, m.data) for m in reader.read_messages(session, [TF_TOPIC])]
+    rep = [(m.log_time_ns, m.data) for m in reader.read_messages(tmp_path / "replay" / "replay.mcap", [TF_TOPIC])]
     assert len(rec) >= 20 and rep == rec
 
 
@@ -219,12 +219,12 @@ def test_bsc_record_makes_the_transforms_from_the_zenoh_samples(tmp_path):
                 recording.on_payload(f"bsc/paper_robot/samples/joint/{name}",
                                      codec.encode(JointSample(name, t, i % 256, 0.001 * i, 0.0)))
         assert recording.refused == 0 and not recording.rejected
-    tf = list(mcaplog.read_messages(path, [TF_TOPIC]))
+    tf = list(reader.read_messages(path, [TF_TOPIC]))
     assert [m.log_time_ns - t0 for m in tf] == [20_000_000, 40_000_000, 60_000_000, 80_000_000]
     last = {t["child_frame_id"]: t for t in tf[-1].data["transforms"]}
     # the 80 ms tick came with that ms's IMU sample, before its joint samples: the angles of 79 ms
     assert last["arm0_link1"]["rotation"]["z"] == pytest.approx(math.sin(0.079 / 2))
-    assert len(list(mcaplog.read_messages(path, [ROBOT_DESCRIPTION_TOPIC]))) == 1
+    assert len(list(reader.read_messages(path, [ROBOT_DESCRIPTION_TOPIC]))) == 1
 
 
 def test_a_batch_of_rows_gives_what_the_rows_one_by_one_give():
@@ -267,7 +267,7 @@ def test_each_rotated_file_gets_the_urdf(tmp_path):
         paths = rec.paths
     assert len(paths) >= 5
     for p in paths:
-        msgs = list(mcaplog.read_messages(p, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
+        msgs = list(reader.read_messages(p, [TF_TOPIC, ROBOT_DESCRIPTION_TOPIC]))
         if any(m.topic == TF_TOPIC for m in msgs):
             assert msgs[0].topic == ROBOT_DESCRIPTION_TOPIC, p.name
 
@@ -309,6 +309,6 @@ def test_bsc_record_over_zenoh_writes_the_transforms(tmp_path):
                 assert time.monotonic() < deadline, recording.summary()
                 time.sleep(0.005)
             assert recording.refused == 0 and not recording.rejected
-    tf = list(mcaplog.read_messages(path, [TF_TOPIC]))
+    tf = list(reader.read_messages(path, [TF_TOPIC]))
     assert len(tf) == n_ms // 20 - 1                      # a tick per 20 ms after the first
-    assert len(list(mcaplog.read_messages(path, [ROBOT_DESCRIPTION_TOPIC]))) == 1
+    assert len(list(reader.read_messages(path, [ROBOT_DESCRIPTION_TOPIC]))) == 1

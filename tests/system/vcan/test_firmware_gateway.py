@@ -158,7 +158,8 @@ def read_recording(path: Path) -> dict:
     from drivers.samples import BusHealth, DeviceHealth
     from gateway import codec
     from gateway.efforts import JointEfforts, ThrusterEffort
-    from gateway.replay import iter_file_order, sample_types
+    from gateway.log.reader import iter_file_order
+    from gateway.replay import sample_types
 
     types_ = sample_types()
     out: dict = {"samples": [], "device_health": {}, "bus_health": {}, "efforts": []}

@@ -1,4 +1,4 @@
-"""Read back what :mod:`gateway.log.recorder` wrote: inspect, recover and replay MCAP logs.
+"""Walk a session log record by record: inspect it (``bsc info``) and recover what is intact.
 
 - :func:`scan` walks a file record by record (the mcap library's record-level reader), so it
   works on a file cut short by a crash or a full disk and stops cleanly where it was cut. A
@@ -8,8 +8,8 @@
 - :func:`inspect` is what ``bsc info`` prints: duration, channels, rates, gaps, metadata,
   attachments, and whether the file is complete (valid footer and summary) or truncated.
 - :func:`recover` rewrites every complete record of a truncated file into a valid one.
-- :func:`read_messages` / :func:`read_can_frames` iterate a complete file in log-time order,
-  decoded, for replay.
+
+Reading a complete log is :mod:`gateway.log.reader`'s.
 
 Bad input (empty, foreign, corrupt header) raises :class:`McapFileError`, a ``ValueError`` with
 one readable line that names the file.
@@ -22,7 +22,7 @@ import json
 import os
 import struct
 import zlib
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,27 +32,23 @@ from mcap.records import (Attachment, Channel, Chunk, DataEnd, Footer, Header, M
                           Metadata, Schema)
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
-from gateway.errors import GatewayError
+from gateway.log.errors import McapFileError
 
 try:
     from zstandard import ZstdError as _ZstdError
 except ImportError:  # pragma: no cover - zstandard ships with mcap's recommended extras
     _ZstdError = McapError
 
-from gateway.log.canframe import can_frame_from_record
-from gateway.log.names import CAN_SCHEMA_NAME
+from gateway.log.names import MAGIC
 
-MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")          # opcode, length
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4               # opcode, length, summary start/offset, crc
 _KNOWN_OPCODES = {int(op) for op in Opcode}
 # Anything a damaged record can throw while the library parses it.
-_PARSE_ERRORS = (McapError, struct.error, ValueError, KeyError, IndexError, OverflowError,
+PARSE_ERRORS = (McapError, struct.error, ValueError, KeyError, IndexError, OverflowError,
                  MemoryError, _ZstdError)
 
 
-class McapFileError(GatewayError, ValueError):
-    """The file is not a readable MCAP log (empty, foreign, corrupt before any data)."""
 
 
 @dataclasses.dataclass(slots=True)
@@ -162,7 +158,7 @@ def scan(path: str | os.PathLike[str],
                 record = next(iter(StreamReader(io.BytesIO(head + body), skip_magic=True,
                                                 emit_chunks=True,
                                                 record_size_limit=length).records), None)
-            except _PARSE_ERRORS as exc:
+            except PARSE_ERRORS as exc:
                 if bad(f"corrupt {_opcode_name(opcode)} record ({exc})"):
                     continue
                 break
@@ -176,7 +172,7 @@ def scan(path: str | os.PathLike[str],
                 result.chunks += 1
                 try:
                     inner = breakup_chunk(record, validate_crc=True)
-                except _PARSE_ERRORS as exc:
+                except PARSE_ERRORS as exc:
                     result.chunks_skipped += 1
                     start = min(offset, verified)      # from the last proven record (see verified)
                     verified = offset + _RECORD_HEADER.size + length       # (what is before: reported)
@@ -256,7 +252,7 @@ def _preload_summary(result: ScanResult, path: Path) -> None:
 
         with open(path, "rb") as f:
             summary = SeekingReader(f, validate_crcs=True).get_summary()
-    except _PARSE_ERRORS + (OSError,):
+    except PARSE_ERRORS + (OSError,):
         return
     if summary is not None:
         result.schemas.update(summary.schemas)
@@ -309,7 +305,7 @@ def _chunk_at(f, p: int, size: int, peek: bytes) -> bool:
         if not isinstance(rec, Chunk):
             return False
         breakup_chunk(rec, validate_crc=True)
-    except _PARSE_ERRORS:
+    except PARSE_ERRORS:
         return False
     return True
 
@@ -596,129 +592,6 @@ def scan_header(path: str | os.PathLike[str]) -> Header:
 
 # ----------------------------------------------------------------------------- replay
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class LoggedMessage:
-    """One message read back: ``data`` is the decoded JSON record."""
-
-    topic: str
-    log_time_ns: int
-    publish_time_ns: int
-    sequence: int
-    schema_name: str
-    data: dict[str, Any]
-
-    def can_message(self):
-        """The python-can ``Message`` of a raw CAN record (``bsc.CanFrame`` schema)."""
-        if self.schema_name != CAN_SCHEMA_NAME:
-            raise TypeError(f"{self.topic}: schema {self.schema_name} is not {CAN_SCHEMA_NAME}")
-        return can_frame_from_record(self.data)
-
-
-def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = None, *,
-                  start_s: float | None = None, duration_s: float | None = None,
-                  start_ns: int | None = None, end_ns: int | None = None
-                  ) -> Iterator[LoggedMessage]:
-    """Messages of ``topics`` (all when ``None``) in log-time order, JSON-decoded.
-
-    Time window: absolute ``[start_ns, end_ns)`` in the log time base, or ``start_s`` seconds
-    after the first message of the file and ``duration_s`` long (both may be combined with a
-    topic filter; the offsets count from the file's first message of ANY topic). The file must
-    be complete (a truncated file raises :class:`McapFileError`: run ``bsc recover`` first).
-    """
-    from mcap.reader import SeekingReader
-
-    path = Path(path)
-    scan_header(path)
-    ok, why = check_footer(path)
-    if not ok:
-        raise McapFileError(f"{path}: cannot replay, file is truncated ({why}); "
-                            f"run `bsc recover {path}` first")
-    topic_list = None if topics is None else [topics] if isinstance(topics, str) else list(topics)
-    with open(path, "rb") as f:
-        reader = SeekingReader(f, validate_crcs=True)
-        summary = reader.get_summary()
-        if start_s is not None or duration_s is not None:
-            stats = summary.statistics if summary is not None else None
-            first = stats.message_start_time if stats is not None else 0
-            base = first if start_ns is None else start_ns
-            if start_s is not None:
-                base += round(start_s * 1e9)
-            start_ns = base
-            if duration_s is not None:
-                end_ns = base + round(duration_s * 1e9)
-        if start_ns is not None and end_ns is not None and end_ns <= start_ns:
-            return
-        messages = reader.iter_messages(topics=topic_list, log_time_order=True,
-                                        starting_at=start_ns, ending_before=end_ns)
-        while True:
-            try:
-                item = next(messages, None)
-                if item is None:
-                    return
-                schema, channel, msg = item
-                data = _decode(channel, msg)
-            except _PARSE_ERRORS as exc:      # CRC mismatch, bad zstd frame, bad JSON
-                raise McapFileError(f"{path}: corrupt data ({exc}); `bsc recover {path}` "
-                                    "copies everything that is intact") from exc
-            yield LoggedMessage(channel.topic, msg.log_time, msg.publish_time, msg.sequence,
-                                schema.name if schema else "", data)
-
-
-def read_can_frames(path: str | os.PathLike[str], buses: Iterable[str] | None = None,
-                    **window: Any) -> Iterator[tuple[str, Any]]:
-    """``(bus, can.Message)`` pairs of the raw CAN topics in log-time order.
-
-    ``buses`` are logical bus names (``ft0`` for topic ``/can/ft0``); all when ``None``.
-    ``window`` takes the time arguments of :func:`read_messages`.
-    """
-    from gateway.log.names import CAN_TOPIC_PREFIX
-
-    if buses is None:
-        with open(path, "rb") as f:
-            from mcap.reader import SeekingReader
-
-            scan_header(path)
-            ok, why = check_footer(path)
-            if not ok:
-                raise McapFileError(f"{path}: cannot replay, file is truncated ({why}); "
-                                    f"run `bsc recover {path}` first")
-            summary = SeekingReader(f).get_summary()
-            topics = [c.topic for c in summary.channels.values()
-                      if c.topic.startswith(CAN_TOPIC_PREFIX)] if summary else []
-    else:
-        topics = [CAN_TOPIC_PREFIX + b for b in buses]
-    if not topics:
-        return
-    for m in read_messages(path, topics, **window):
-        yield m.topic[len(CAN_TOPIC_PREFIX):], m.can_message()
-
-
-def _decode(channel: Channel, msg: Message) -> dict[str, Any]:
-    if channel.message_encoding != "json":
-        return {"_raw": msg.data}
-    return json.loads(msg.data)
-
-
-def to_dataclass(cls: type, record: dict[str, Any]):
-    """Rebuild a (frozen) sample dataclass from its decoded record: JSON lists become tuples
-    where the field is a tuple, as in :mod:`drivers.samples`."""
-    import typing
-
-    from gateway.log.schema import pair_value_type, pairs_from_json
-
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in record:
-            continue
-        value = record[f.name]
-        if isinstance(value, list) and pair_value_type(hints.get(f.name)):
-            value = pairs_from_json(value)
-        elif isinstance(value, list) and typing.get_origin(hints.get(f.name)) is tuple:
-            value = tuple(value)
-        kwargs[f.name] = value
-    return cls(**kwargs)
-
 
 def human_size(n: int) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
@@ -728,6 +601,5 @@ def human_size(n: int) -> str:
     return f"{n} B"  # pragma: no cover
 
 
-__all__ = ["ChannelInfo", "LogInfo", "LoggedMessage", "McapFileError", "RecoverReport",
-           "ScanResult", "check_footer", "inspect", "read_can_frames", "read_messages",
-           "recover", "scan", "scan_header", "to_dataclass"]
+__all__ = ["ChannelInfo", "LogInfo", "McapFileError", "PARSE_ERRORS", "RecoverReport", "ScanResult",
+           "check_footer", "human_size", "inspect", "recover", "scan", "scan_header"]
