@@ -942,29 +942,20 @@ class _Publish(Sink):
 
     def __init__(self, gw: GatewayService):
         self.gw = gw
-        self._enc = None
-
-    def _encoders(self, session):
-        if self._enc is None:
-            from gateway.engine.encode import RowEncoders
-
-            self._enc = RowEncoders(session.pipeline, "zenoh")
-        return self._enc
 
     def sample_rows(self, session, events, log_ns) -> None:
         gw = self.gw
         if not gw.publish_samples:
             return
         emit = gw._emit
-        for key, _, data, k in self._encoders(session).sample_messages(events):
+        for key, _, data, k in session.sample_messages(events):   # encoded once, with the recorder
             # a value that is not finite: codec.encode refuses the object, counted as a put error
             emit(key, data if data is not None else session.pipeline.drivers.to_samples(events[k:k + 1])[0])
 
     def effort_rows(self, session, rows, log_ns) -> None:
-        enc = self._encoders(session)
         emit = self.gw._emit
-        for i, (key, _, data, _) in enumerate(enc.effort_messages(rows)):
-            emit(key, data if data is not None else enc.effort_object(rows, i))
+        for i, (key, _, data, _) in enumerate(session.effort_messages(rows)):
+            emit(key, data if data is not None else session.encoders().effort_object(rows, i))
 
     def emit(self, key: str, obj, log_ns: int) -> None:
         self.gw._emit(key, obj)

@@ -26,9 +26,9 @@ from gateway.errors import GatewayError
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
 from gateway.efforts import Alert, JointEfforts, ThrusterEffort
-from gateway.log.schema import pair_value_type, pairs_json
+from gateway.log.schema import FORM_VERSION, pair_value_type, record_of
 
-VERSION = 1
+VERSION = FORM_VERSION          # the "v" of every payload (the JSON form, gateway.log.schema)
 ENCODING = "application/json"
 TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
                                                    ThrusterCommand, ValveCommand, DeviceHealth, BusHealth, JointEfforts,
@@ -80,9 +80,8 @@ def payload_schema(cls: type) -> dict:
     from gateway.log.names import JSON_SCHEMA_DIALECT
     from gateway.log.schema import json_schema_for
 
-    s = json_schema_for(cls)
-    s["properties"] = {"type": {"const": cls.__name__}, "v": {"const": VERSION}, **s["properties"]}
-    s["required"] = ["type", "v", *s["required"]]
+    s = json_schema_for(cls)                 # the log's schema of the same record, type and v first
+    s["properties"] = {**s["properties"], "type": {"const": cls.__name__}, "v": {"const": VERSION}}
     return {"$schema": JSON_SCHEMA_DIALECT, **s}
 
 
@@ -123,23 +122,17 @@ def fetch_schemas(session, robot: str, timeout_s: float = 5.0) -> dict[str, dict
 
 
 _FIELDS: dict[type, tuple[str, ...]] = {t: tuple(f.name for f in dataclasses.fields(t)) for t in TYPES.values()}
-# named counts and values (a health's rejected, an alert's evidence): arrays of {"name", "value"}
-_PAIRS: dict[type, frozenset[str]] = {t: frozenset(n for n, h in typing.get_type_hints(t).items() if pair_value_type(h))
-                                     for t in TYPES.values()}
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))   # json.dumps(obj, same options)
 
 
 def encode(sample) -> bytes:
+    """The payload of a sample, effort, health or alert: its record (:func:`gateway.log.schema.record_of`,
+    the same bytes a log holds), refusing a non-finite number (JSON has none)."""
     cls = type(sample)
-    names = _FIELDS.get(cls)
-    if names is None:
+    if cls not in _FIELDS:
         raise TypeError(f"cannot encode {cls.__name__}")
-    obj = {"type": cls.__name__, "v": VERSION}
-    pairs = _PAIRS[cls]
-    for n in names:
-        obj[n] = pairs_json(getattr(sample, n)) if n in pairs else getattr(sample, n)
     try:
-        return _ENCODER.encode(obj).encode()
+        return _ENCODER.encode(record_of(sample)).encode()
     except ValueError as exc:
         raise CodecError(f"{cls.__name__}: {exc}") from None
 

@@ -185,6 +185,10 @@ def _near(a, b, path: str = "") -> str | None:
     return f"{path}: {a!r} recorded, {b!r} replayed"
 
 
+def _without_envelope(record: dict) -> dict:
+    return {k: v for k, v in record.items() if k not in ("type", "v")}
+
+
 def compare_efforts(recorded: str | os.PathLike[str], replayed: str | os.PathLike[str]) -> EffortCheck:
     """Every effort message of ``replayed`` against ``recorded``'s, topic by topic in file order."""
     from gateway import KERNELS
@@ -206,7 +210,11 @@ def compare_efforts(recorded: str | os.PathLike[str], replayed: str | os.PathLik
             if x == y:
                 check.identical += 1
                 continue
-            why = _near(json.loads(x), json.loads(y))
+            dx, dy = json.loads(x), json.loads(y)
+            if _without_envelope(dx) == _without_envelope(dy) and ("type" in dx) != ("type" in dy):
+                check.identical += 1              # a log from before the one JSON form: the same values
+                continue
+            why = _near(dx, dy)
             if why is None:
                 check.close += 1
             else:
@@ -305,7 +313,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     if self.keys is None:
                         from gateway.engine.encode import RowEncoders
 
-                        self.keys = RowEncoders(session.pipeline, "mcap")
+                        self.keys = RowEncoders(session.pipeline)
                     return self.keys
 
                 def sample_rows(self, session, events, log_ns) -> None:

@@ -1,11 +1,8 @@
 """JSON payloads written straight from rows: the drivers' sample events and the estimator's
 effort rows become the bytes Python's ``json`` would write for their objects, without the objects.
 
-Two forms, as the project writes them today:
-
-- ``"zenoh"``: :func:`gateway.codec.encode` (``{"type":"JointEfforts","v":1,<fields>}``), what
-  ``bsc gateway`` publishes;
-- ``"mcap"``: the recorder's form (``{<fields>}``), what a log holds.
+One form (:func:`gateway.log.schema.record_of`, ``{"type":"JointEfforts","v":1,<fields>}``): what
+``bsc gateway`` publishes on zenoh and what a log holds are the same bytes.
 
 Each message kind is a small program (literal bytes and typed value slots, built once from the
 dataclass's fields) run by one compiled interpreter over per-row value arrays; floats go through
@@ -24,6 +21,7 @@ from numba import njit
 from drivers import kernel
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.log.schema import FORM_VERSION
 
 from .floatrepr import write_float, write_int
 
@@ -31,7 +29,6 @@ _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 # program ops: rows of (op, a, b, c)
 LIT, FLT, INT, BOOL, STR, FLTS, FLTS_IF, MIN_IF, FLAGS, GOOD, FLT_IF, INT_IF = range(12)
-FORMS = ("zenoh", "mcap")
 
 
 @_jit
@@ -190,11 +187,9 @@ class _Builder:
 class _Program:
     """The ops of one message kind: :meth:`field` adds ``"name":`` then a value op."""
 
-    def __init__(self, b: _Builder, type_name: str, form: str):
+    def __init__(self, b: _Builder, type_name: str):
         self.b, self.ops = b, []
-        self._pending = "{"
-        if form == "zenoh":
-            self._pending += f'"type":{json.dumps(type_name)},"v":1,'
+        self._pending = "{" + f'"type":{json.dumps(type_name)},"v":{FORM_VERSION},'
         self._first = True
 
     def _text(self, t: str) -> None:
@@ -239,16 +234,13 @@ class SampleJson:
     """Encodes the drivers' event rows (:data:`drivers.kernel.EVENT_DTYPE`) of one robot as the
     JSON of the sample objects :meth:`drivers.kernel.DriverCore.to_samples` would give."""
 
-    def __init__(self, arm_names: list[str], joint_names: list[str], form: str = "zenoh"):
-        if form not in FORMS:
-            raise ValueError(f"form must be one of {FORMS}")
-        self.form = form
+    def __init__(self, arm_names: list[str], joint_names: list[str]):
         b = _Builder()
         arm_tab = b.table(arm_names)
         joint_tab = b.table(joint_names)
         progs = []
         for kind, cls in sorted(_KIND_CLASS.items()):
-            pr = _Program(b, cls.__name__, form)
+            pr = _Program(b, cls.__name__)
             for f in dataclasses.fields(cls):
                 n = f.name
                 if n == "device":
@@ -314,10 +306,8 @@ class EffortJson(SampleJson):
     JSON of the objects :meth:`EstimatorCore.efforts` gives: per row one :class:`JointEfforts`
     per arm, then one :class:`ThrusterEffort`."""
 
-    def __init__(self, core, form: str = "zenoh"):
-        if form not in FORMS:
-            raise ValueError(f"form must be one of {FORMS}")
-        self.form, self.core = form, core
+    def __init__(self, core):
+        self.core = core
         p, nj = core.n_arms, core.n_joints
         self.per_row = p + 1
         b = _Builder()
@@ -334,7 +324,7 @@ class EffortJson(SampleJson):
             n = len(names)
             fs = b.flag_set(list(core._arm_bits[a]))
             joints_text = "[" + ",".join(json.dumps(j) for j in names) + "]"
-            pr = _Program(b, "JointEfforts", form)
+            pr = _Program(b, "JointEfforts")
             pr.field("arm", LIT, *b.literal(json.dumps(core.arms[a])))
             pr.field("t_ns", INT, it)
             pr.field("joints", LIT, *b.literal(joints_text))
@@ -348,7 +338,7 @@ class EffortJson(SampleJson):
             progs.append(pr.array())
             col += n
         fs = b.flag_set(list(core._thr_bits))
-        pr = _Program(b, "ThrusterEffort", form)
+        pr = _Program(b, "ThrusterEffort")
         pr.field("t_ns", INT, it)
         pr.field("force_n", FLTS, ct, 3)
         pr.field("moment_nm", FLTS, ct + 3, 3)
@@ -399,17 +389,17 @@ class EffortJson(SampleJson):
 
 
 class RowEncoders:
-    """A session's rows as payloads, one form: the encoders and the key of every message."""
+    """A session's rows as payloads: the encoders and the key of every message."""
 
-    def __init__(self, pipeline, form: str):
+    def __init__(self, pipeline):
         from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
         from gateway import keys
 
         robot, name = pipeline.robot, pipeline.name
         arms = [a.name for a in robot.arms]
         joints = robot.joint_names
-        self.samples = SampleJson(arms, joints, form)
-        self.efforts = EffortJson(pipeline.estimator, form) if pipeline.estimator is not None else None
+        self.samples = SampleJson(arms, joints)
+        self.efforts = EffortJson(pipeline.estimator) if pipeline.estimator is not None else None
         self.sample_type = {kernel.WRENCH: WrenchSample, kernel.JOINT: JointSample, kernel.TORQUE: TorqueCommand,
                             kernel.IMU: ImuSample, kernel.THRUSTER: ThrusterCommand, kernel.VALVE: ValveCommand}
         self.sample_key = {kernel.WRENCH: [keys.wrench(name, a) for a in arms],

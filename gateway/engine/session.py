@@ -78,6 +78,8 @@ class Session:
                  pipeline_factory=Pipeline):
         self.sinks = list(sinks)
         self.samples = samples
+        self._encoders = None
+        self._sample_memo = self._effort_memo = None
         self._sorted()
         rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows}
         # pipeline_factory: a stand-in with Pipeline's interface (tests of what runs around it)
@@ -107,6 +109,31 @@ class Session:
         self.sinks.insert(0, sink) if first else self.sinks.append(sink)
         self._sorted()
 
+    # -- payloads: encoded once per batch, for every row sink (a zenoh payload and a log message
+    #    are the same bytes, gateway.log.schema)
+    def sample_messages(self, events: np.ndarray) -> list:
+        """``(key, type, payload, event)`` of a batch of sample events (:class:`RowEncoders`),
+        encoded once whatever the number of sinks that ask (the publisher and the recorder)."""
+        memo = self._sample_memo
+        if memo is None or memo[0] is not events:
+            memo = self._sample_memo = (events, self.encoders().sample_messages(events))
+        return memo[1]
+
+    def effort_messages(self, rows: np.ndarray) -> list:
+        """The same for a batch of effort rows."""
+        memo = self._effort_memo
+        if memo is None or memo[0] is not rows:
+            memo = self._effort_memo = (rows, self.encoders().effort_messages(rows))
+        return memo[1]
+
+    def encoders(self):
+        """This session's :class:`gateway.engine.encode.RowEncoders` (made on first use)."""
+        if self._encoders is None:
+            from .encode import RowEncoders
+
+            self._encoders = RowEncoders(self.pipeline)
+        return self._encoders
+
     def _emit(self, key: str, obj) -> None:
         log_ns = self.pipeline.log_ns
         for s in self.sinks:
@@ -118,6 +145,7 @@ class Session:
             s.emit(key, obj, log_ns)
 
     def _sample_rows(self, events: np.ndarray, log_ns: np.ndarray) -> None:
+        self._sample_memo = None                 # the rows of this batch, encoded on first ask
         for s in self._event_sinks:
             s.sample_events(self, events, log_ns)
         if not self.samples:
@@ -131,6 +159,7 @@ class Session:
                 self._emit_objects(pl.key(obj), obj)
 
     def _effort_rows(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        self._effort_memo = None
         for s in self._row_sinks:
             s.effort_rows(self, rows, log_ns)
         if self._object_sinks:

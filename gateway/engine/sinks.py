@@ -31,7 +31,6 @@ class RecorderSink(Sink):
         self.transforms = transforms
         self._tf = None                         # (session, TransformWriter), made on the first rows
         self.rows = rows                        # samples and efforts as rows: JSON written from them
-        self._enc = None
         self.channels = dict(channels or {})    # bus -> its channel, recorded with frames given as rows
         self._n = 0
 
@@ -79,22 +78,13 @@ class RecorderSink(Sink):
     def emit(self, key: str, obj, log_ns: int) -> None:
         self._put(self.recorder.record(key, obj, log_ns), key)
 
-    # rows (``rows=True``): the recorder's JSON written straight from them
-    def _encoders(self, session):
-        enc = self._enc
-        if enc is None or enc[0] is not session:
-            from .encode import RowEncoders
-
-            enc = self._enc = (session, RowEncoders(session.pipeline, "mcap"))
-        return enc[1]
-
+    # rows (``rows=True``): the records written straight from them (encoded once by the session)
     def sample_rows(self, session, events: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record(self._encoders(session).sample_messages(events), log_ns,
+        self._record(session.sample_messages(events), log_ns,
                      lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
 
     def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
-        enc = self._encoders(session)
-        self._record(enc.effort_messages(rows), log_ns, lambda i: enc.effort_object(rows, i))
+        self._record(session.effort_messages(rows), log_ns, lambda i: session.encoders().effort_object(rows, i))
 
     def _record(self, messages, log_ns: np.ndarray, object_of) -> None:
         rec, logs = self.recorder, log_ns.tolist()

@@ -330,21 +330,30 @@ def test_merged_backlog_waits_for_a_bus_that_may_hold_earlier_frames():
 def test_direct_mode_recording_replays_to_the_same_efforts(sessions, rig, tmp_path):  # noqa: F811
     """What a direct-mode gateway records, replayed offline, gives byte-identical efforts: the
     recorder keeps the frames in the order the worker fed them, across buses (a batch merged by
-    time from several buses must not be written bus by bus)."""
+    time from several buses must not be written bus by bus). And what it published on zenoh is
+    what it recorded, byte for byte: one JSON form for a sample, on the wire and in the log."""
     from gateway.log.recorder import Recorder
     from gateway.log.context import session_context
     from gateway.log.reader import iter_file_order
     from gateway.replay import OUTPUT_NAME, replay_offline
 
-    pub_s, _ = sessions
+    pub_s, sub_s = sessions
     path = tmp_path / "live.mcap"
-    with Recorder(path) as rec:
-        rec.add_session_context(**session_context(rig.robot))
-        with GatewayService(rig.robot, rig.rx, pub_s, record=rec) as gw:
-            assert gw.receive == "direct"
-            rig.steps(300)                                   # as fast as the sockets take them
-            wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
-            assert gw.drain(WAIT_S)
+    published: list = []
+    sub = sub_s.declare_subscriber(keys.efforts(rig.robot.name),
+                                   lambda s: published.append((str(s.key_expr), s.payload.to_bytes())))
+    try:
+        subscribed(pub_s, keys.efforts(rig.robot.name))
+        with Recorder(path) as rec:
+            rec.add_session_context(**session_context(rig.robot))
+            with GatewayService(rig.robot, rig.rx, pub_s, record=rec) as gw:
+                assert gw.receive == "direct"
+                rig.steps(300)                                   # as fast as the sockets take them
+                wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "frames not all received")
+                assert gw.drain(WAIT_S)
+        wait_for(lambda: len(published) >= 3 * 300, "efforts not all published")
+    finally:
+        sub.undeclare()
     report = replay_offline(path, tmp_path / "out")
 
     def efforts(p):
@@ -353,6 +362,7 @@ def test_direct_mode_recording_replays_to_the_same_efforts(sessions, rig, tmp_pa
     live = efforts(path)
     assert len(live) == 3 * 300 and report.frames_in == sum(rig.sent.values())
     assert efforts(tmp_path / "out" / OUTPUT_NAME) == live
+    assert sorted(published) == sorted(live)                  # topic = key; the same bytes
 
 
 def test_payloads_declare_their_encoding_and_their_schemas_are_queryable(sessions, rig):  # noqa: F811

@@ -1,6 +1,7 @@
-"""JSON written straight from rows is byte for byte the JSON of the objects: the zenoh payloads
-(gateway.codec.encode) and the recorder's records, for every sample kind and every effort, with
-flags, commands missing and present, several robots."""
+"""JSON written straight from rows is byte for byte the JSON of the objects, in the one form of a
+record: the zenoh payloads (gateway.codec.encode) and the log's messages (gateway.log.schema) are
+the same bytes, for every sample kind and every effort, with flags, commands missing and present,
+several robots."""
 from __future__ import annotations
 
 import sys
@@ -23,6 +24,7 @@ from simulator import firmware  # noqa: E402
 
 
 def _python(objs, form):
+    """The objects' JSON by the zenoh codec or by the log's encoder (the same form)."""
     if form == "zenoh":
         return [codec.encode(o) for o in objs]
     return [dataclass_json(type(o))(o).encode() for o in objs]
@@ -39,10 +41,10 @@ def run(request):
     return robot, c, eff
 
 
-@pytest.mark.parametrize("form", ["zenoh", "mcap"])
+@pytest.mark.parametrize("form", ["zenoh", "log"])
 def test_efforts_as_their_objects_would_be(run, form):
     robot, c, rows = run
-    enc = EffortJson(c, form)
+    enc = EffortJson(c)
     got = enc.messages(rows)
     objs = c.efforts(rows)
     assert len(got) == len(objs) > 300 and not enc.failed.any()
@@ -51,7 +53,7 @@ def test_efforts_as_their_objects_would_be(run, form):
     assert any(getattr(o, "commanded_nm", None) == () for o in objs)
 
 
-@pytest.mark.parametrize("form", ["zenoh", "mcap"])
+@pytest.mark.parametrize("form", ["zenoh", "log"])
 def test_samples_as_their_objects_would_be(run, form):
     robot, _, _ = run
     from gateway.engine.warm import frames
@@ -69,7 +71,7 @@ def test_samples_as_their_objects_would_be(run, form):
         pairs += [(names.index(b), m) for b, m in fw.frames(sim.step())]
     core = DriverCore(wm)
     events = core.feed(columns_from_messages(pairs)).copy()
-    enc = SampleJson([a.name for a in robot.arms], robot.joint_names, form)
+    enc = SampleJson([a.name for a in robot.arms], robot.joint_names)
     got = enc.messages(events)
     objs = core.to_samples(events)
     assert len(got) == len(objs) > 1000
@@ -83,7 +85,7 @@ def test_a_non_finite_value_is_left_to_python(run):
     robot, c, rows = run
     bad = rows[:3].copy()
     bad["full_nm"][1, 0] = np.nan
-    enc = EffortJson(c, "mcap")
+    enc = EffortJson(c)
     buf, off = enc.encode(bad)
     per = enc.per_row
     assert enc.failed.tolist() == [0] * per + [1] + [0] * (2 * per - 1)

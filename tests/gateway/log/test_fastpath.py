@@ -42,7 +42,8 @@ def test_prebuilt_json_encoder_gives_the_same_bytes():
     seen_pairs = False
     for s in _samples(random.Random(1), 3000):
         got = schema.dataclass_json(type(s))(s)
-        assert got == schema.encode_json(s)
+        assert got == schema.encode_json(schema.record_of(s))
+        assert got.startswith('{"type":"%s","v":1,' % type(s).__name__)
         seen_pairs |= '"rejected":[{"name":"dlc","value":1}' in got
     assert seen_pairs
 

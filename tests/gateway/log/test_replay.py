@@ -24,7 +24,7 @@ import robot_description
 from drivers import frames, wire
 from drivers.devices import listeners_for
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
-from gateway import codec, keys
+from gateway import KERNELS, codec, keys
 from gateway import replay as rp
 from gateway.log import context, errors, reader, scan
 from gateway.cli import main
@@ -300,9 +300,11 @@ def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(
     assert frames(out) == frames(path) and len(frames(path)) == full.frames_in
 
 
-def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40):
+def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40, old_form=False):
     """A live-recorded log (real pipeline) whose ``at``-th JointEfforts has its first full torque
-    scaled by ``1 + nudge``, and whose session metadata names ``kernels`` (default: these)."""
+    scaled by ``1 + nudge``, and whose session metadata names ``kernels`` (default: these);
+    ``old_form``: samples and efforts written as logs were before the one JSON form (no ``type``
+    and ``v``)."""
     from gateway.pipeline import Pipeline
 
     frame_list = synthetic_frames(robot, 200, seed=5)
@@ -316,6 +318,10 @@ def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40):
                 seen[0] += 1
                 if seen[0] == at and nudge:
                     obj = dataclasses.replace(obj, full_nm=(obj.full_nm[0] * (1 + nudge), *obj.full_nm[1:]))
+            if old_form:
+                from gateway.log.schema import record_of
+
+                obj = {k: v for k, v in record_of(obj).items() if k not in ("type", "v")}
             assert rec.record(key, obj)
 
         pipe = Pipeline(robot, emit=emit)
@@ -340,14 +346,30 @@ def test_check_finds_the_replay_identical_to_live(robot, tmp_path, capsys):
     assert report["ok"] and report["identical"] == report["recorded"] == report["replayed"] > 100
 
 
+def test_check_of_a_log_from_before_the_one_json_form(robot, tmp_path, capsys):
+    """A log whose records have no ``type`` and ``v`` (written before the zenoh payload and the log
+    message became one form) holds the same efforts: the check finds them identical."""
+    from gateway.cli import main
+
+    log = _live_log(tmp_path / "old.mcap", robot, old_form=True)
+    first = next(iter(efforts_by_topic(log).values()))[0]
+    assert b'"type"' not in first
+    assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == 0
+    report = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())["check"]
+    assert report["ok"] and report["identical"] == report["recorded"] == report["replayed"] > 100
+    replayed = next(iter(efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME).values()))[0]
+    assert replayed.startswith(b'{"type":"JointEfforts","v":1,')
+
+
 def efforts_count(path):
     return sum(len(v) for v in efforts_by_topic(path).values())
 
 
 @pytest.mark.parametrize("kernels, nudge, status, says", [
-    ("0", 1e-12, 0, "came from kernels v0, these are v1: {n} byte-identical, 1 within 1e-09 relative, none beyond"),
+    ("0", 1e-12, 0, f"came from kernels v0, these are v{KERNELS}: {{n}} byte-identical, 1 within 1e-09 relative, "
+                    "none beyond"),
     (None, 1e-12, 3, "1 not byte-identical although the kernels are the same"),
-    ("0", 1e-6, 3, "efforts DIFFER from the log's (kernels v0, now v1): 1 beyond 1e-09 relative; first: "
+    ("0", 1e-6, 3, f"efforts DIFFER from the log's (kernels v0, now v{KERNELS}): 1 beyond 1e-09 relative; first: "
                    "bsc/paper_robot/efforts/joints/arm"),
 ])
 def test_check_of_a_log_from_other_kernels(robot, tmp_path, capsys, kernels, nudge, status, says):
