@@ -9,7 +9,7 @@ live gateway does it (record the frame, feed it to ``gateway.pipeline.Pipeline``
 emit). The kernels are compiled (or loaded from numba's cache) first and that time is reported
 on its own. Then, from the same file, what ``bsc replay`` runs:
 
-- read: the chunks read into frame rows (``gateway.engine.sources.mcap_frames``);
+- read: the chunks read into frame rows (``gateway.log.frames.mcap_frames``);
 - read + drivers + estimator: those rows through a session, output discarded;
 - full: ``replay_offline`` (read, drivers, estimator, write efforts and health, report), the
   median of three runs; and the same with ``samples=True`` (every decoded sample written too).
@@ -131,7 +131,7 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: i
     import statistics
 
     from gateway.engine import Session
-    from gateway.engine.sources import mcap_frames
+    from gateway.log.frames import mcap_frames
     from gateway.engine.warm import warm
     from gateway.log.context import read_context, resolve_robot
     from gateway.replay import OUTPUT_NAME, replay_offline

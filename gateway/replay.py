@@ -259,7 +259,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort
     from gateway.engine import Session, Sink
     from gateway.engine.sinks import RecorderSink
-    from gateway.engine.sources import mcap_frames, read_ahead
+    from gateway.log.frames import mcap_frames, read_ahead
     from gateway.log.recorder import Recorder
 
     import robot_description

@@ -100,7 +100,7 @@ def _layout_and_robot(src: Path, robot_name: str | None = None):
 def _decode(src: Path, ctx, rob, layout):
     """Sample rows and effort rows of the log's raw frames, through a fresh Session."""
     from gateway.engine import Session, Sink
-    from gateway.engine.sources import mcap_frames
+    from gateway.log.frames import mcap_frames
     from gateway.log.reader import iter_can_frames
 
     samples: list[np.ndarray] = []

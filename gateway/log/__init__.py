@@ -9,6 +9,7 @@
 - :mod:`.context`: what a log says about itself (the robot, DBCs, key scheme, ``bsc.session``):
   written (:func:`~gateway.log.context.session_context`) and read back (``read_context``);
 - :mod:`.reader`: the one reader, in file or log-time order, and the raw CAN frames on it;
+  :mod:`.frames` its compiled path for the frames of a whole log as rows (what a replay feeds);
 - :mod:`.scan`: the record-level walk: ``bsc info`` (inspect) and ``bsc recover``;
 - :mod:`.errors`: :class:`~gateway.log.errors.LogError`, :class:`~gateway.log.errors.McapFileError`;
 - :mod:`.canlog`: CAN logs of other tools (candump, Vector, PEAK, python-can CSV) in and out.

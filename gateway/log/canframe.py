@@ -2,7 +2,7 @@
 JSON record, on topic ``/can/<bus>``.
 
 The record's fields, in the order they are written (:data:`FIELDS`), make every form here and
-in the compiled chunk reader (:mod:`gateway.engine.sources`): the dict (:func:`can_frame_to_record`,
+in the compiled chunk reader (:mod:`gateway.log.frames`): the dict (:func:`can_frame_to_record`,
 :func:`can_frame_from_record`), the JSON bytes from a message or from frame rows read straight
 from a socket (:func:`can_frame_json`, :func:`can_frame_json_rows`: the same bytes as the dict
 through the log's JSON encoder), and the fast reader of those bytes (:func:`can_frame_from_json`,

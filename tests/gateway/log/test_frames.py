@@ -13,7 +13,7 @@ import pytest
 import robot_description
 from drivers.kernel import columns_from_messages
 from gateway.log import context, reader
-from gateway.engine.sources import mcap_frames
+from gateway.log.frames import mcap_frames
 from gateway.log.errors import McapFileError
 from gateway.log.canframe import can_frame_to_record
 from gateway.log.recorder import Recorder
@@ -99,7 +99,7 @@ def test_no_summary_means_the_slow_reader(log, tmp_path):
 def test_read_ahead_gives_the_same_chunks_and_the_reader_errors(log, tmp_path):
     import threading
 
-    from gateway.engine.sources import read_ahead
+    from gateway.log.frames import read_ahead
 
     buses = ["arm0", "arm1", "spacecraft"]
     want = list(mcap_frames(log, buses))

@@ -1,16 +1,17 @@
-"""Where a session's frames come from, as rows: a recorded MCAP log, read chunk by chunk.
+"""The reader's compiled path for raw CAN frames: a session log's frames as rows, chunk by chunk.
 
-:func:`mcap_frames` gives the raw CAN frames of a bsc log (channels ``/can/<bus>``, schema
-``bsc.CanFrame``) as :data:`drivers.kernel.FRAME_DTYPE` rows with their log times, in FILE order
+:func:`mcap_frames` (what ``bsc replay`` feeds the session engine) gives the raw CAN frames of a
+bsc log (channels ``/can/<bus>``, schema ``bsc.CanFrame``) as :data:`drivers.kernel.FRAME_DTYPE` rows with their log times, in FILE order
 (the order the live gateway recorded, and fed, them), one chunk at a time: the chunk is read at
 its offset from the summary's chunk index, decompressed (zstd or none) and CRC-checked, and one
 compiled pass walks its records and parses the recorder's own frame JSON (``Recorder.record_can``:
 one exact form) straight into rows. A record in any other form (another writer, another key
 order) is parsed by ``json`` instead, in its place; bad data raises
-:class:`gateway.errors.McapFileError` naming the log and ``bsc recover``.
+:class:`gateway.log.errors.McapFileError` naming the log and ``bsc recover``. The frames are the
+ones :func:`gateway.log.reader.iter_can_frames` gives, in the same order (tests hold them equal).
 
 A log without a valid summary (a killed recorder) is read by the record-by-record reader
-(:func:`gateway.replay.iter_can_frames`), as before; ``bsc replay`` recovers a truncated log first.
+(:func:`gateway.log.reader.iter_can_frames`); ``bsc replay`` recovers a truncated log first.
 """
 from __future__ import annotations
 
@@ -226,7 +227,7 @@ def _walk(d, bus_of, start_ns, end_ns, keys, b64, rows, log_ns, slow_at, slow_of
 def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: int | None = None,
                 can_ids=None) -> Iterator[FrameChunk] | None:
     """The raw frames of ``buses`` (``bus`` = index into it), chunk by chunk in file order; None
-    when the log has no usable summary (read it with :func:`gateway.replay.iter_can_frames`)."""
+    when the log has no usable summary (read it with :func:`gateway.log.reader.iter_can_frames`)."""
     from gateway.log.errors import McapFileError
     from gateway.log.canframe import can_frame_from_record
     from gateway.log.names import CAN_SCHEMA_NAME, CAN_TOPIC_PREFIX
