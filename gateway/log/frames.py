@@ -1,8 +1,9 @@
 """The reader's compiled path for raw CAN frames: a session log's frames as rows, chunk by chunk.
 
 :func:`mcap_frames` (what ``bsc replay`` feeds the session engine) gives the raw CAN frames of a
-bsc log (channels ``/can/<bus>``, schema ``bsc.CanFrame``) as :data:`drivers.kernel.FRAME_DTYPE` rows with their log times, in FILE order
-(the order the live gateway recorded, and fed, them), one chunk at a time: the chunk is read at
+bsc log (channels ``/can/<bus>``, schema ``bsc.CanFrame``) as :data:`drivers.kernel.FRAME_DTYPE`
+rows with their log times, in FILE order (the order the live gateway recorded, and fed, them),
+one chunk at a time: the chunk is read at
 its offset from the summary's chunk index, decompressed (zstd or none) and CRC-checked, and one
 compiled pass walks its records and parses the recorder's own frame JSON (``Recorder.record_can``:
 one exact form) straight into rows. A record in any other form (another writer, another key
