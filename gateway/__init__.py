@@ -5,5 +5,6 @@ __version__ = "0.1.0"
 # (drivers/kernel.py, gateway/estimator/core.py, chain_kernel.py, thruster_kernel.py). Bump it with
 # any change that alters a bit of a published sample or effort: every recorded session carries it
 # (metadata bsc.session "kernels"), and `bsc replay --check` says when a log's efforts came from
-# other kernels.
-KERNELS = "1"
+# other kernels. 2: the thruster fault detector (gateway/estimator/fdi.py) holds the filter's
+# learning while it suspects a fault and models a confirmed one.
+KERNELS = "2"

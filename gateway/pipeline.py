@@ -131,6 +131,10 @@ class Pipeline:
             rows = est.feed(events)
             if len(rows):
                 self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
+            alarms = est.thruster_alarms()
+            if alarms:
+                self.log_ns = int(t_frame[-1])
+                self._thruster_alarms(alarms)
 
     def flush(self) -> None:
         """End of input: compute the epochs still waiting for members (log time: the last frame's)."""
@@ -138,6 +142,27 @@ class Pipeline:
             rows = self.estimator.flush()
             if len(rows):
                 self._efforts(rows, np.full(len(rows), self.log_ns, dtype=np.int64))
+            alarms = self.estimator.thruster_alarms()
+            if alarms:
+                self._thruster_alarms(alarms)
+
+    def _thruster_alarms(self, alarms: list[dict]) -> None:
+        """The estimator's thruster faults (gateway/estimator/fdi.py) as alerts on
+        ``bsc/<robot>/alerts``: critical for a stuck valve, a warning for a partial loss or a
+        leak; evidence: the thruster, the fault's size (fraction of nominal thrust), the GLR or
+        CUSUM statistic and the type's code (0 stuck open, 1 leak, 2 stuck closed, 3 partial loss)."""
+        from gateway.efforts import Alert
+        from gateway.estimator import fdi
+
+        for a in alarms:
+            j, fault = a["thruster"], a["fault"]
+            stuck = fault in ("stuck open", "stuck closed")
+            alert = Alert(self.name, "thruster", f"thruster{j}", fdi.RULE, "critical" if stuck else "warning",
+                          "raised", a["detected_t_ns"], a["t_ns"],
+                          f"thruster {j}: {fault} (size {a['theta']:.2f} of nominal thrust)",
+                          (("thruster", float(j)), ("theta", a["theta"]), ("stat", a["stat"]),
+                           ("type", float(fdi.TYPES.index(fault)))))
+            self.emit(keys.alerts(self.name), alert)
 
     def _efforts(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
         self.efforts += len(rows) * (self.estimator.n_arms + 1)

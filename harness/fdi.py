@@ -87,8 +87,8 @@ class Verdict:
     commanded_after: float = float("nan")  # ... from the onset to the session's end
     false_alarms: int = 0          # alarms that name anything else
     # thruster wrench from the alarm to the end, band-limited (20 Hz) NRMSE against the truth
-    # (RMS error / peak, the worst axis): the offline filter with the fault modelled, and what
-    # the live estimator published (it does not model faults yet)
+    # (RMS error / peak, the worst axis): the offline filter of bsc analyze, and what the live
+    # estimator published (both model the fault once it is confirmed)
     nrmse_modelled: float = float("nan")
     nrmse_published: float = float("nan")
 

@@ -44,6 +44,7 @@ from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
 from . import chain_kernel as ck
+from . import fdi as fd
 from . import thruster_kernel as tk
 from .model import EstimatorModel, EstimatorSettingsError
 from .thrusters import ThrusterFilterSettings
@@ -62,7 +63,7 @@ Record = Any                    # a numba record view of a SAMPLE_DTYPE row: num
 ChainScratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]     # chain_kernel._scratch
 Chain = tuple[I64, I64, F64, F64, F64, F64, F64, ChainScratch]        # chain_kernel._epoch's model, weights, rcond
 ThrusterArrays = tk.State                                              # CompiledThrusterFilter.state
-Scratch = tuple[F64, F64, F64]
+Scratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64]     # three scratch arrays, then the fault detector's
 Views = tuple[I64, I64, I64, I64, I64, F64, F64, F64, F64, F64, Chain, ThrusterArrays, Scratch]
 
 # sample kinds and rows: the compiled drivers' events (drivers/kernel.py EVENT_DTYPE)
@@ -95,6 +96,7 @@ class CoreSettings:
     max_open: int = 20                 # epochs waiting for members before the oldest is forced out
     imu_max_age_periods: int = 3       # an epoch's IMU sample may be this many IMU periods old (older: stale:imu)
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
+    fdi: fd.FdiSettings | None = field(default_factory=fd.FdiSettings)   # thruster fault detector (None: off)
     pending_capacity: int = 1 << 14    # slower-stream samples waiting for an epoch (oldest dropped beyond)
     held_capacity: int = 1 << 14       # samples held while the grid's phase is learnt
 
@@ -112,7 +114,13 @@ def flag_names(robot: Robot) -> list[str]:
         names += [f"missing:{a.name}", f"saturated:{a.name}", f"fault:{a.name}"]
     for j in robot.joint_names:
         names += [f"stale:{j}", f"missing:{j}", f"saturated:{j}", f"fault:{j}"]
+    names.append(THRUSTER_FAULT_FLAG)
     return names
+
+
+THRUSTER_FAULT_FLAG = "fault:thrusters"
+"""The last flag bit: a thruster fault found by the detector (:mod:`.fdi`) and not resolved; it
+concerns the thruster effort only."""
 
 
 def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
@@ -330,7 +338,7 @@ def _compute_ready(si: I64, cfg: I64, nready: int, ep_t: I64, ep_i: I64, ep_ft: 
 
 @_jit
 def _apply_pending(si: I64, cfg: I64, lim: int, pend: np.ndarray, jcmd: F64, jcmd_i: I64, thr_cmd: F64,
-                   tf: ThrusterArrays) -> None:
+                   tf: ThrusterArrays, scratch: Scratch) -> None:
     """Apply the slower-stream samples whose grid time is at most ``lim``, in arrival order."""
     period, half = cfg[0], cfg[1]
     n = si[_N_PEND]
@@ -346,7 +354,14 @@ def _apply_pending(si: I64, cfg: I64, lim: int, pend: np.ndarray, jcmd: F64, jcm
         kind = s["kind"]
         if kind == IMU:                       # it ends the filter steps of its grid epoch
             v = s["values"]
-            tk.imu(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10], v[4:7])
+            if cfg[13] != 0:                  # the fault detector: the update's innovation, then its verdict
+                dst, dcfg, wnom, ha, tap = scratch[3], scratch[4], scratch[5], scratch[6], scratch[7]
+                if tk.imu_tap(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10],
+                              v[4:7], tap, fd.learning(dst)):
+                    fd.observe(dst, dcfg, wnom, ha, tap, g)
+                    fd.accommodate(dst, dcfg, wnom, tf[0], tf[1])
+            else:
+                tk.imu(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10], v[4:7])
             si[_GYRO_T] = g
             si[_HAVE_GYRO] = 1
             if s["saturated"] != 0:
@@ -383,7 +398,7 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         si[_CENTER] += ((et[1] + et[2]) // 2 - t) // cfg[8]
     si[_EPOCHS] += 1
     if si[_N_PEND] > 0:
-        _apply_pending(si, cfg, t - half, pend, jcmd, jcmd_i, thr_cmd, tf)
+        _apply_pending(si, cfg, t - half, pend, jcmd, jcmd_i, thr_cmd, tf, scratch)
     o = si[_N_OUT]
     fl = out[o]["flags"]
     for k in range(fl.shape[0]):
@@ -435,6 +450,10 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         if ei[base + 2] & cfg[11] != 0:
             fl[fj + J_FAULT] = 1
     mask = ei[1] if ei[0] != 0 else 0
+    if cfg[13] != 0:                       # the faults found so far: stuck valves as they are
+        mask = fd.valve_mask(scratch[3], mask)
+        if fd.unresolved(scratch[3]):
+            fl[cfg[12]] = 1
     row = out[o]
     thr = row["thruster"]
     tk.wrench(tf[0], mask, thr)
@@ -472,10 +491,12 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
     for k in range(_N_COMMON + 3 * p):
         if fl[k] != 0:
             good = False
+    if fl[cfg[12]] != 0:
+        good = False
     si[_GOOD] += good
     si[_N_OUT] = o + 1
     if si[_N_PEND] > 0:                    # off the latency path: what the next epoch applies first
-        _apply_pending(si, cfg, t + half, pend, jcmd, jcmd_i, thr_cmd, tf)
+        _apply_pending(si, cfg, t + half, pend, jcmd, jcmd_i, thr_cmd, tf, scratch)
 
 
 # --- the entry points: every array a view of three buffers ------------------------------------------
@@ -525,7 +546,8 @@ def _views(I: I64, F: F64, lay: I64) -> Views:
               _f2(F, lay, 22), _f2(F, lay, 23), _f2(F, lay, 24), _f2(F, lay, 25)))
     tf = (_f1(F, lay, 26), _f2(F, lay, 27), _f1(F, lay, 28), _f1(F, lay, 29), _f1(F, lay, 30),
           _i1(I, lay, 31), _f2(F, lay, 32), _i1(I, lay, 33), _i1(I, lay, 34), _f1(F, lay, 35))
-    scratch = (_f2(F, lay, 36), _f2(F, lay, 37), _f2(F, lay, 38))
+    scratch = (_f2(F, lay, 36), _f2(F, lay, 37), _f2(F, lay, 38), _f1(F, lay, 39), _f1(F, lay, 40), _f2(F, lay, 41),
+               _f1(F, lay, 42), _f1(F, lay, 43))
     return si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch
 
 
@@ -645,8 +667,8 @@ class EstimatorCore:
         self.flag_names = flag_names(robot)
         self.dtype = effort_dtype(p, nj, len(self.flag_names))
         self.cfg = np.array([period, period // 2, p, nj, imu_period, s.imu_max_age_periods * imu_period, s.max_open,
-                             PHASE_LEARN_SAMPLES, PHASE_TRACK, wire.FT_FAULT, wire.IMU_FAULT, wire.DRIVE_FAULT],
-                            dtype=np.int64)
+                             PHASE_LEARN_SAMPLES, PHASE_TRACK, wire.FT_FAULT, wire.IMU_FAULT, wire.DRIVE_FAULT,
+                             len(self.flag_names) - 1, int(s.fdi is not None)], dtype=np.int64)
         cap = s.max_open + 8
         si = np.zeros(_N_SI, dtype=np.int64)
         si[_LEARNING] = 1
@@ -657,6 +679,12 @@ class EstimatorCore:
         self.kf = tk.CompiledThrusterFilter(model, self.layout, dt=period * 1e-9,
                                             imu_steps=max(1, imu_period // period), settings=s.thrusters)
         kf = self.kf
+        n_thr = self.layout.n
+        if s.fdi is not None:                 # the fault detector's state and constants (gateway/estimator/fdi.py)
+            fdi_arrays = [fd.new_state(n_thr), s.fdi.config(n_thr, imu_period * 1e-9), kf.W.copy(),
+                          kf.state[3][tk._HA:tk._HA + 18].copy(), np.zeros(tk.tap_size(n_thr))]
+        else:
+            fdi_arrays = [np.zeros(1), np.zeros(1), np.zeros((1, 6)), np.zeros(1), np.zeros(1)]
         packed = ViewLayout([
             si, self.cfg, np.zeros((cap, 4), dtype=np.int64), np.zeros((cap, 3 + 3 * p + 3 * nj), dtype=np.int64),
             np.zeros((nj1, 2), dtype=np.int64),                                       # 0-4
@@ -666,11 +694,14 @@ class EstimatorCore:
             *ck._scratch(p, L),                                                      # 17-25
             *kf.state,                                                               # 26-35
             np.zeros((p, 6)), np.zeros((4, 6)), np.zeros((1, nj1)),                  # 36-38
+            *fdi_arrays,                                                             # 39-43
         ])
         self._I, self._F, self._lay = packed.I, packed.F, packed.lay
         self._si = packed.views[0]
         # the filter object works on the same memory as the kernels (W, efficiency, updates)
         kf.share(packed.views[26:36])
+        self._fdi_state = packed.views[39]
+        self._fdi_seen = 0
         self._held = np.zeros(s.held_capacity, dtype=SAMPLE_DTYPE)
         self._pend = np.zeros(s.pending_capacity, dtype=SAMPLE_DTYPE)
         self._cap = cap
@@ -681,7 +712,8 @@ class EstimatorCore:
         for a, names in enumerate(self.arm_joints):
             bits = common + [_N_COMMON + 3 * p + 4 * self.joint_index[j] + k for j in names for k in range(4)]
             self._arm_bits.append(np.array(sorted(bits, key=lambda b: self.flag_names[b]), dtype=np.int64))
-        self._thr_bits = np.array(sorted(common, key=lambda b: self.flag_names[b]), dtype=np.int64)
+        thr = common + [len(self.flag_names) - 1]             # and the thruster fault flag
+        self._thr_bits = np.array(sorted(thr, key=lambda b: self.flag_names[b]), dtype=np.int64)
         self._flag_cache: dict[tuple[int, bytes], tuple[str, ...]] = {}
         from drivers.frames import builder
         from gateway.efforts import JointEfforts, ThrusterEffort
@@ -692,6 +724,20 @@ class EstimatorCore:
     @property
     def epochs(self) -> int:
         return int(self._si[_EPOCHS])
+
+    def thruster_alarms(self) -> list[dict[str, float | int | str]]:
+        """Thruster faults confirmed since the last call (:mod:`.fdi`), in order: ``t_ns`` (when
+        confirmed; grid time), ``thruster``, ``fault`` (stuck open, leak, stuck closed, partial
+        loss), ``theta`` (its size, fraction of nominal thrust), ``stat``, ``window`` (short,
+        long), ``detected_t_ns``. Empty when the detector is off."""
+        if self.settings.fdi is None or int(self._fdi_state[fd._S_EVENTS]) == self._fdi_seen:
+            return []
+        ev = fd.events(self._fdi_state, self.layout.n)
+        new = ev[self._fdi_seen:]
+        self._fdi_seen = len(ev)
+        return [{"t_ns": int(r[0]), "thruster": int(r[1]), "fault": fd.TYPES[int(r[2])], "theta": float(r[3]),
+                 "stat": float(r[4]), "window": "short" if r[5] == 0 else "long", "detected_t_ns": int(r[6])}
+                for r in new]
 
     def good_efforts(self, rows: np.ndarray) -> int:
         """How many efforts of the effort ``rows`` are good: per arm and for the thrusters, none of

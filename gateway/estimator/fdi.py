@@ -47,6 +47,7 @@ from .thruster_kernel import F64, I64
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
+RULE = "thruster-fault"                # the rule name of its alerts (live and bsc analyze)
 OPEN, LOSS = 0, 1                      # hypothesis families
 FAMILIES = ("open", "loss")
 STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS = range(4)
@@ -420,6 +421,19 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
         for q in range(6):
             x[6 * j + q] -= theta * Wnom[j, q]
             P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+
+
+@_jit
+def learning(st: F64) -> bool:
+    """Whether the filter may learn from the next IMU update (:func:`observe`'s last verdict)."""
+    return bool(st[_S_LEARN] != 0.0)
+
+
+@_jit
+def unresolved(st: F64) -> bool:
+    """A thruster fault has been raised (being confirmed, or confirmed): the thruster wrench
+    is not to be trusted as healthy."""
+    return bool(st[_S_NFAULTS] > 0.0)
 
 
 @_jit

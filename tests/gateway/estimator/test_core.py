@@ -137,7 +137,8 @@ def test_flags_are_named_and_sorted(capture):
     rows, c = _rows_in_chunks(robot, layout, samples, [len(samples)])
     first = c.efforts(rows[:1])
     assert all(e.flags == tuple(sorted(e.flags)) and "warmup" in e.flags for e in first)
-    assert len(c.flag_names) == 5 + 3 * 2 + 4 * 4 and len(set(c.flag_names)) == len(c.flag_names)
+    assert len(c.flag_names) == 5 + 3 * 2 + 4 * 4 + 1 and len(set(c.flag_names)) == len(c.flag_names)
+    assert c.flag_names[-1] == "fault:thrusters"
 
 
 def test_no_samples_no_efforts():
