@@ -1,0 +1,57 @@
+"""The fault-detection benchmark's bookkeeping (benchmarks/bench_fdi.py) on made-up verdicts: the
+family covers every thruster and fault type with onsets in range, and the summary counts what
+the targets count (stuck closed judged only where the thruster was commanded, a late alarm is
+not in time, wrong alarms and healthy false alarms counted). The figures themselves come from
+``bsc bench --only fdi`` (minutes of simulation)."""
+from __future__ import annotations
+
+import pytest
+
+from benchmarks import bench_fdi, suite
+from robot_description.thrusters import ThrusterLayout
+
+
+def test_family_covers_every_thruster_and_fault():
+    cases = bench_fdi.family()
+    n = ThrusterLayout.named().n
+    for fault in ("stuck_open", "stuck_closed"):
+        got = [c for c in cases if c.fault == fault]
+        assert sorted(c.thruster for c in got) == list(range(n))
+        assert all(2.0 <= c.onset_s <= 4.0 and c.duration_s == pytest.approx(c.onset_s + 2.0) for c in got)
+    for size in bench_fdi.LOSS_SIZES:
+        got = [c for c in cases if c.fault == "loss" and c.factor == pytest.approx(1 - size)]
+        assert sorted(c.thruster for c in got) == list(range(n))
+    healthy = [c for c in cases if c.fault is None]
+    assert sorted({c.scenario for c in healthy}) == ["capture", "three_arm"] and len(healthy) == 2 * bench_fdi.N_HEALTHY
+    assert len({c.seed for c in cases if c.scenario == "capture"}) == len([c for c in cases if c.scenario == "capture"])
+    assert bench_fdi.family() == cases                  # seeded: the same family every run
+    assert "fdi" in suite.BENCHMARKS and "fdi" not in suite.selection(None, fuzz=False)[1]
+
+
+def _v(fault, thruster, *, named=True, delay=0.2, duty=0.5, false=0, factor=1.0, scenario="capture"):
+    nan = float("nan")
+    return {"case": {"scenario": scenario, "seed": 1, "duration_s": 5.0, "thruster": thruster, "fault": fault,
+                     "onset_s": 3.0, "factor": factor},
+            "alarms": [], "named": named, "delay_s": delay if named else nan, "theta": 0.9 if named else nan,
+            "theta_true": 0.92, "commanded_duty": duty, "commanded_after": duty, "false_alarms": false,
+            "nrmse_modelled": 0.04 if named else nan, "nrmse_published": 0.3 if named else nan}
+
+
+def test_summary_counts_what_the_targets_count():
+    vs = [_v("stuck_open", 0), _v("stuck_open", 1, delay=0.7), _v("stuck_open", 2, named=False, false=1),
+          _v("stuck_closed", 0), _v("stuck_closed", 1, named=False, duty=0.0),
+          _v("loss", 3, factor=0.85, delay=1.5), _v("loss", 4, factor=0.85, named=False, duty=0.0),
+          _v("loss", 5, factor=0.85, named=False),
+          {**_v("loss", 6, factor=0.85, named=False), "theta_true": float("nan")},
+          _v(None, None, named=False, false=0), _v(None, None, named=False, false=2, scenario="three_arm")]
+    s = bench_fdi.summarise(vs)
+    so = s["stuck"]["stuck_open"]
+    assert (so["judged"], so["named_in_time"], so["wrong_alarms"]) == (3, 1, 1)
+    assert so["rate"] == pytest.approx(1 / 3) and so["not_named"] == [1, 2]
+    sc = s["stuck"]["stuck_closed"]
+    assert (sc["judged"], sc["named_in_time"], sc["never_commanded"]) == (1, 1, [1]) and sc["rate"] == 1.0
+    loss = s["loss"]["0.15"]
+    assert (loss["judged"], loss["named"], loss["missed"]) == (2, 1, [5]) and loss["delay_max_s"] == 1.5
+    assert s["per_thruster"]["3"]["smallest loss named"] == "15 %" and s["per_thruster"]["6"]["loss 15%"] == "-"
+    assert s["healthy"] == {"capture": {"sessions": 1, "false_alarms": 0},
+                            "three_arm": {"sessions": 1, "false_alarms": 2}}
