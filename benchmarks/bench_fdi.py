@@ -179,7 +179,7 @@ def figures(quick: bool = False) -> list[dict]:
                              f"{100 * d['nrmse_modelled_max']:.1f} %"))
     for size, d in s["loss"].items():
         rows.append(row(f"partial loss {float(size):.0%}: named within the session", 100 * d["rate"],
-                        "% of commanded thrusters", target=">= 95 %" if float(size) >= 0.15 else None,
+                        "% of judged runs", target=">= 95 %" if float(size) >= 0.15 else None,
                         ok=(d["rate"] >= TARGET_RATE) if float(size) >= 0.15 else None,
                         note=f"{d['named']}/{d['judged']}; median delay {d['delay_median_s']:.2f} s, max "
                              f"{d['delay_max_s']:.2f} s; size error max {d['theta_err_max']:.3f}; wrong alarms "

@@ -58,7 +58,7 @@ BENCHMARKS: dict[str, tuple[str, str, bool]] = {
     "replay": ("benchmarks.bench_replay", "offline replay through drivers + estimator", True),
     "latency": ("benchmarks.bench_latency", "gateway end-to-end latency (CAN -> zenoh subscriber)", True),
     "fdi": ("benchmarks.bench_fdi", "thruster fault detection on the scenario family: rate, delay, false alarms "
-            "(about 130 simulated sessions; only with --only fdi)", False),
+            "(148 simulated sessions, about 15 minutes on 2 cores; only with --only fdi)", False),
     "fuzz": ("benchmarks.fuzz_drivers", "driver fuzzing, 1 M frames (only with --fuzz or --only fuzz)", False),
     "capacity": ("benchmarks.bench_capacity", "whole system for 60 s: firmware + gateway --record + monitor, "
                  "frames shed (root; only with --only capacity)", False),
