@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from numba import njit
+
 ALERT_LOG_TOPIC = "/foxglove/alerts"
 LOG_SCHEMA_NAME = "foxglove.Log"
 
@@ -194,6 +196,7 @@ class FrameTransforms:
         self._q_imu_in_body = _q_matrix(robot.R_imu)
         self.angles: list[float | None] = [None] * len(self.devices)
         self.attitude: tuple | None = None        # world <- spacecraft, (w, x, y, z)
+        self._quat: tuple | None = None           # the latest IMU quaternion, normalised
         self._next: int | None = None
         self._map = None                          # (the drivers' joint names, their index here)
         self.ignored = 0                          # samples not finite, counted
@@ -209,10 +212,13 @@ class FrameTransforms:
         if not (n > 1e-6 and math.isfinite(n)):
             self.ignored += 1
             return False
-        w, x, y, z = (c / n for c in q)
-        a, b, c, d = self._q_imu_in_body
-        self.attitude = _qmul((w, x, y, z), (a, -b, -c, -d))     # world <- imu <- body
+        self._set_normalised(tuple(c / n for c in q))
         return True
+
+    def _set_normalised(self, q: tuple) -> None:
+        self._quat = q                                              # the IMU's, normalised
+        a, b, c, d = self._q_imu_in_body
+        self.attitude = _qmul(q, (a, -b, -c, -d))                   # world <- imu <- body
 
     def set_angle(self, k: int, angle_rad: float) -> bool:
         """Joint ``k``'s angle (rad, in :attr:`devices` order); False if ignored."""
@@ -304,50 +310,31 @@ class FrameTransforms:
                 if self.due(t):
                     out.append((t, self.message(t)))
             return out
-        sel = np.flatnonzero((kinds == JOINT) | (kinds == IMU))
-        if not len(sel):
-            return out
-        dev = np.clip(events["device"][sel].astype(np.int64), -1, len(joint_names))
-        which = np.where(kinds[sel] == IMU, -1, to_mine[dev])
-        known = which != -2                  # a joint the robot does not have: not even its time
-        sel, which = sel[known], which[known]
-        values = events["values"][sel, :4]
-        logs = np.asarray(log_ns)[sel]
-        # what set_attitude / set_angle refuse, refused here for the batch: such a row still counts
-        # for the timing (as in the loop above), its value never
-        with np.errstate(over="ignore", invalid="ignore"):
-            norm = np.sqrt((values * values).sum(axis=1))
-        good = np.where(which == -1, np.isfinite(values).all(axis=1) & np.isfinite(norm) & (norm > 1e-6),
-                        np.isfinite(values[:, 0]))
-        self.ignored += int((~good).sum())
-        which = np.where(good, which, -2)
-        start, n = 0, len(sel)
-        while start < n:
-            if self._next is None:
-                self.due(int(logs[start]))
-            hit = np.flatnonzero(logs[start:] >= self._next)
-            stop = n if not len(hit) else start + int(hit[0]) + 1
-            self._apply(which[start:stop], values[start:stop])
-            if len(hit):
-                t = int(logs[stop - 1])
-                out.append((t, self.message(t)))
-            start = stop
+        # a batch: one compiled pass keeps the latest values and snapshots them at each due time
+        n, nj = len(events), len(self.angles)
+        angles = np.array([math.nan if a is None else a for a in self.angles], dtype=np.float64)
+        quat = np.full(4, math.nan) if self._quat is None else np.array(self._quat, dtype=np.float64)
+        state = np.array([-1 if self._next is None else self._next, self.period_ns, 0], dtype=np.int64)
+        snap_t = np.empty(n, dtype=np.int64)
+        snap_a = np.empty((n, nj), dtype=np.float64)
+        snap_q = np.empty((n, 4), dtype=np.float64)
+        m = _scan(kinds, events["device"], events["values"], np.ascontiguousarray(log_ns, dtype=np.int64),
+                  to_mine, len(joint_names), JOINT, IMU, angles, quat, state, snap_t, snap_a, snap_q)
+        self.ignored += int(state[2])
+        for r in range(m):
+            self._restore(snap_a[r], snap_q[r])
+            t = int(snap_t[r])
+            out.append((t, self.message(t)))
+        self._restore(angles, quat)
+        self._next = None if state[0] < 0 else int(state[0])
         return out
 
-    def _apply(self, which, values) -> None:
-        """The last value of each joint and of the attitude among these rows (in order; -2: a row
-        to skip)."""
-        import numpy as np
-
-        if not len(which):
-            return
-        kinds, first = np.unique(which[::-1], return_index=True)
-        for k, i in zip(kinds.tolist(), (len(which) - 1 - first).tolist()):
-            if k == -1:
-                self.set_attitude(values[i].tolist())
-            elif k >= 0:
-                self.angles[k] = float(values[i, 0])
-
+    def _restore(self, angles, quat) -> None:
+        """The state :func:`_scan` kept: angles (NaN: none yet), the IMU's normalised quaternion."""
+        self.angles = [None if a != a else a for a in angles.tolist()]
+        q = quat.tolist()
+        if q[0] == q[0] and tuple(q) != self._quat:
+            self._set_normalised(tuple(q))
 
 class TransformWriter:
     """Records a robot's :class:`FrameTransforms` on :data:`TF_TOPIC` into a
@@ -391,3 +378,53 @@ class TransformWriter:
         for t, msg in out:
             refused += not self.write(t, msg)
         return len(out), refused
+
+
+@njit(cache=True, nogil=True)
+def _scan(kinds, devices, values, logs, to_mine, top, joint, imu, angles, quat, state, snap_t, snap_a, snap_q):
+    """:meth:`FrameTransforms.rows` of a batch in one pass, as its row-by-row loop does it: a joint
+    row (``to_mine`` maps its device; -2: not this robot's, not even its time) or an IMU row
+    updates ``angles`` / ``quat`` (normalised) when finite (else counted in ``state[2]``), then at
+    a due time (``state[0]``: the next, -1 before the first row; ``state[1]``: the period) the
+    values are copied to the next ``snap_*`` row. Returns the number of snapshots."""
+    m = 0
+    period = state[1]
+    for i in range(kinds.shape[0]):
+        kd = kinds[i]
+        if kd == joint:
+            d = devices[i]
+            if d < -1:
+                d = -1
+            if d > top:
+                d = top
+            k = to_mine[d]
+            if k == -2:
+                continue
+            v = values[i, 0]
+            if math.isfinite(v):
+                angles[k] = v
+            else:
+                state[2] += 1
+        elif kd == imu:
+            q0, q1, q2, q3 = values[i, 0], values[i, 1], values[i, 2], values[i, 3]
+            ok = math.isfinite(q0) and math.isfinite(q1) and math.isfinite(q2) and math.isfinite(q3)
+            n = math.sqrt(0.0 + q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3) if ok else 0.0
+            if n > 1e-6 and math.isfinite(n):
+                quat[0], quat[1], quat[2], quat[3] = q0 / n, q1 / n, q2 / n, q3 / n
+            else:
+                state[2] += 1
+        else:
+            continue
+        t = logs[i]
+        if state[0] < 0:
+            state[0] = (t // period + 1) * period
+            continue
+        if t >= state[0]:
+            snap_t[m] = t
+            for k in range(angles.shape[0]):
+                snap_a[m, k] = angles[k]
+            for k in range(4):
+                snap_q[m, k] = quat[k]
+            m += 1
+            state[0] = (t // period + 1) * period
+    return m
