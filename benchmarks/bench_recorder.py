@@ -57,13 +57,13 @@ def measure(n: int) -> dict:
 
     from drivers.samples import WrenchSample
     from gateway.log.canframe import can_frame_to_record
-    from gateway.log.recorder import _encode
+    from gateway.log.schema import encode_json
 
     frames = [can.Message(timestamp=1.0 + i * 1e-4, arbitration_id=0x100 + i % 8,
                           data=i.to_bytes(8, "little"), channel="vcan0") for i in range(n)]
     samples = [WrenchSample("arm0", 1_000_000_000 + i * 100_000, i, (0.1 * i, -2.0, 9.81),
                             (0.01, 0.02, 0.03)) for i in range(n)]
-    payloads = [_encode(can_frame_to_record(m)).encode() for m in frames]
+    payloads = [encode_json(can_frame_to_record(m)).encode() for m in frames]
 
     def feed_can(rec):
         record = rec.record_can
