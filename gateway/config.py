@@ -240,9 +240,35 @@ DOCS = {
     "estimator.thrusters.walk_moment_nm": "random walk of each thruster's moment, N m per sqrt(s)",
     "estimator.thrusters.bias_force_sigma_n": "prior of the bias states seen as force, N",
     "estimator.thrusters.bias_moment_sigma_nm": "prior of the bias states seen as moment, N m",
+    "estimator.fdi": "The thruster fault detector (docs/fdi.md); fdi = false in [estimator] turns it off.",
+    "estimator.fdi.short_s": "gross faults: the GLR's forgetting window, s",
+    "estimator.fdi.h_short": "gross faults: alarm threshold of the GLR (chi-squared; healthy sessions peak near 20)",
+    "estimator.fdi.theta_min_short": "gross faults: smallest fault size alarmed, fraction of nominal thrust",
+    "estimator.fdi.hold_short": "gross faults: IMU updates in a row with the same best hypothesis above threshold",
+    "estimator.fdi.confirm_short": "gross faults: IMU updates after that over which the size (and type) is estimated",
+    "estimator.fdi.theta1": "partial losses: the fault size the CUSUM tests for, fraction of nominal thrust",
+    "estimator.fdi.h_long": "partial losses: alarm threshold of the CUSUM",
+    "estimator.fdi.theta_min_long": "partial losses: smallest fault size alarmed, fraction of nominal thrust",
+    "estimator.fdi.hold_long": "partial losses: IMU updates in a row with the same best hypothesis above threshold",
+    "estimator.fdi.confirm_long": "partial losses: IMU updates after that over which the size is estimated",
+    "estimator.fdi.suspect": "above this GLR (or 3/4 of h_long) the thruster filter stops learning",
+    "estimator.fdi.warmup_s": "no alarm while the filter converges from its prior, s",
     "recording": "Recording the session (docs/recording.md).",
     "recording.path": "record the session to this MCAP file (unset: no recording)",
 }
+
+
+def _section(hint: Any) -> tuple[type | None, bool]:
+    """``(the dataclass of a section, whether it may be None)`` for a field's type hint; (None, _)
+    for a plain key. A section that may be None (``fdi: FdiSettings | None``: off) is written
+    ``fdi = false`` in a file."""
+    if dataclasses.is_dataclass(hint):
+        return hint, False
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        inner = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(inner) == 1 and dataclasses.is_dataclass(inner[0]) and len(typing.get_args(hint)) == 2:
+            return inner[0], True
+    return None, False
 
 
 def documented_keys(cls=GatewayConfig, prefix: str = "") -> list[str]:
@@ -251,9 +277,9 @@ def documented_keys(cls=GatewayConfig, prefix: str = "") -> list[str]:
     for f in dataclasses.fields(cls):
         name = prefix + f.name
         out.append(name)
-        t = typing.get_type_hints(cls)[f.name]
-        if dataclasses.is_dataclass(t):
-            out += documented_keys(t, name + ".")
+        sec, _ = _section(typing.get_type_hints(cls)[f.name])
+        if sec is not None:
+            out += documented_keys(sec, name + ".")
     return out
 
 
@@ -273,10 +299,13 @@ def _build(cls, table: Any, where: str, base: Path | None, key: str = ""):
     for name, value in table.items():
         dotted = f"{key}.{name}" if key else name
         convert = fields[name].metadata.get("toml")
+        sec, optional = _section(hints[name])
         if convert is not None:
             kw[name] = convert(value, f"{where}: {dotted}")
-        elif dataclasses.is_dataclass(hints[name]):
-            kw[name] = _build(hints[name], value, where, base, dotted)
+        elif sec is not None and optional and value is False:
+            kw[name] = None                       # a section turned off: "fdi = false"
+        elif sec is not None:
+            kw[name] = _build(sec, value, where, base, dotted)
         else:
             kw[name] = _value(hints[name], value, f"{where}: {dotted}", base)
     try:
@@ -356,6 +385,8 @@ def _dump(section, name: str, lines: list[str], docs: bool) -> None:
             lines.append(f"# {f.name}: {DOCS[dotted]}")
         if f.name == "source_rate" and value is None:
             lines.append(f'{f.name} = "lockstep"')
+        elif value is None and _section(typing.get_type_hints(type(section))[f.name])[1]:
+            lines.append(f"{f.name} = false")      # a section turned off
         elif value is None:
             lines.append(f"# {f.name} =")
         else:

@@ -40,12 +40,15 @@ def test_a_file_round_trips_and_relative_paths_are_the_files(tmp_path):
         robot={"description": "three_arm", "thrusters": "ring18"},
         service={"health_period_s": 0.25, "publish_samples": False, "max_backlog": 123, "duration_s": 9.5},
         drivers={"source_rate": None, "stale_periods": 4},
-        estimator={"max_open": 7, "thrusters": {"gain_sigma": 0.1}},
+        estimator={"max_open": 7, "thrusters": {"gain_sigma": 0.1}, "fdi": {"h_short": 150.0}},
         recording={"path": tmp_path / "s.mcap"})
     f = tmp_path / "gw.toml"
     f.write_text(cfg.to_toml())
     assert GatewayConfig.load(f) == cfg
     assert GatewayConfig.load(f).drivers.timing().rate is None          # "lockstep"
+    off = cfg.updated(estimator={"fdi": None})                            # the fault detector off
+    f.write_text(off.to_toml())
+    assert "fdi = false" in f.read_text() and GatewayConfig.load(f) == off and off.estimator.fdi is None
     f.write_text('[recording]\npath = "logs/s.mcap"\n[zenoh]\nconfig_file = "z.json5"\n')
     loaded = GatewayConfig.load(f)
     assert loaded.recording.path == tmp_path / "logs" / "s.mcap"
