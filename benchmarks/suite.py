@@ -59,6 +59,8 @@ BENCHMARKS: dict[str, tuple[str, str, bool]] = {
     "latency": ("benchmarks.bench_latency", "gateway end-to-end latency (CAN -> zenoh subscriber)", True),
     "fdi": ("benchmarks.bench_fdi", "thruster fault detection on the scenario family: rate, delay, false alarms "
             "(148 simulated sessions, about 15 minutes on 2 cores; only with --only fdi)", False),
+    "accuracy": ("benchmarks.bench_accuracy", "joint torques of any robot, sensor side against distal side, on "
+                 "simulated sessions against the truth (issue 17; only with --only accuracy)", False),
     "fuzz": ("benchmarks.fuzz_drivers", "driver fuzzing, 1 M frames (only with --fuzz or --only fuzz)", False),
     "capacity": ("benchmarks.bench_capacity", "whole system for 60 s: firmware + gateway --record + monitor, "
                  "frames shed (root; only with --only capacity)", False),

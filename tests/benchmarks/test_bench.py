@@ -95,3 +95,12 @@ def test_every_name_a_benchmark_imports_exists():
                         except ImportError:
                             missing.append(f"{path.name}:{node.lineno}: {node.module}.{alias.name}")
     assert missing == [], missing
+
+
+def test_the_accuracy_study_rows():
+    """bench_accuracy (issue 17's study): per robot the worst joint of each estimate, finite, in %."""
+    from benchmarks import bench_accuracy
+
+    rows = bench_accuracy.figures(quick=True)
+    assert len(rows) == 6 and all(r["unit"] == "% NRMSE" and 0 <= r["value"] < 100 for r in rows)
+    assert {r["name"].split(":")[0] for r in rows} == {"capture", "three_arm"}
