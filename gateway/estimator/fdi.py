@@ -141,24 +141,6 @@ def new_state(n: int, max_events: int = 64) -> np.ndarray:
 
 
 @_jit
-def _cholesky(S: F64, m: int, L: F64) -> bool:
-    """``S = L L^T`` (m x m, row-major in ``S``); False if not positive definite."""
-    for j in range(m):
-        d = S[6 * j + j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return False
-        L[j, j] = math.sqrt(d)
-        for i in range(j + 1, m):
-            a = S[6 * i + j]
-            for k in range(j):
-                a -= L[i, k] * L[j, k]
-            L[i, j] = a / L[j, j]
-    return True
-
-
-@_jit
 def _whiten(L: F64, m: int, v: F64, out: F64) -> None:
     """``out = L^-1 v``."""
     for r in range(m):
@@ -216,6 +198,20 @@ def _stats(st: F64, h_all: int, w: int, k: int) -> tuple[float, float]:
 
 
 @_jit
+def _best(st: F64, h_all: int, w: int) -> tuple[int, float]:
+    """The hypothesis with the largest statistic of detector ``w`` and that statistic (-1, 0.0:
+    none above zero)."""
+    best = -1
+    best_t = 0.0
+    for k in range(h_all):
+        T, _ = _stats(st, h_all, w, k)
+        if T > best_t:
+            best_t = T
+            best = k
+    return best, best_t
+
+
+@_jit
 def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
     detector state ``st``. Returns whether the filter may learn from the next update (False while
@@ -234,9 +230,9 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     fbase = _S_HDR + 6 * h_all
     ev0 = fbase + _NF * MAX_FAULTS
     m = int(tap[tk.TAP_ROWS])
-    S = tap[tk.TAP_S:tk.TAP_S + 36]
+    S = tap[tk.TAP_S:tk.TAP_S + 36].reshape((6, 6))      # row-major, stride 6
     L = np.zeros((6, 6))
-    if not _cholesky(S, m, L):
+    if not tk.cholesky(S, m, L):
         return bool(st[_S_LEARN] != 0.0)
     e = np.zeros(6)
     for r in range(m):
@@ -344,13 +340,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     suspect = confirming
     gross = False
     for w in range(2):
-        best = -1
-        best_t = 0.0
-        for k in range(h_all):
-            T, _ = _stats(st, h_all, w, k)
-            if T > best_t:
-                best_t = T
-                best = k
+        best, best_t = _best(st, h_all, w)
         theta = _stats(st, h_all, w, best)[1] if best >= 0 else 0.0
         if best_t > cfg[_C_SUSPECT + w]:
             suspect = True
@@ -489,13 +479,7 @@ def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
                 learn = observe(st, cfg, Wnom, Ha, tap, t_ns[k])
                 accommodate(st, cfg, Wnom, x, P)
                 for w in range(2):
-                    best = -1.0
-                    bt = 0.0
-                    for hh in range(h_all):
-                        T, _ = _stats(st, h_all, w, hh)
-                        if T > bt:
-                            bt = T
-                            best = hh
+                    best, bt = _best(st, h_all, w)
                     out_stat[k, 2 * w] = bt
                     out_stat[k, 2 * w + 1] = best
         else:

@@ -90,6 +90,26 @@ _PREV_W, _W = 0, 3
 
 # -- history -------------------------------------------------------------------------------------
 @_jit
+def cholesky(S: F64, m: int, L: F64) -> bool:
+    """``S[:m, :m] = L L^T`` from the lower triangle of ``S`` (the upper is not read), into
+    ``L``'s lower triangle; False if not positive definite. Explicit loops: the same bits
+    whatever the caller (the filter's update, the fault detector's whitening)."""
+    for j in range(m):
+        d = S[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return False
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, m):
+            v = S[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    return True
+
+
+@_jit
 def push_epoch(hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64, t_ns: int, arm_wrench: F64,
                valves_mask: int | np.int64) -> None:
     """Record one step at ``t_ns`` (int ns): the arms' wrench on the spacecraft ``arm_wrench`` (6,)
@@ -232,18 +252,8 @@ def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64,
             S[r, s] = acc
         S[r, r] += R[r]
     L = np.zeros((m, m))
-    for j in range(m):
-        d = S[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return False
-        L[j, j] = math.sqrt(d)
-        for i in range(j + 1, m):
-            v = S[i, j]
-            for k in range(j):
-                v -= L[i, k] * L[j, k]
-            L[i, j] = v / L[j, j]
+    if not cholesky(S, m, L):
+        return False
     # z = L^-1 (y - H x)
     z = np.empty(m)
     for r in range(m):
