@@ -27,7 +27,7 @@ them, so ``bsc replay`` reproduces the efforts byte for byte. How frames reach t
   worker reads.
 
 The backlog is bounded either way: at most ``max_backlog`` frames (default
-:data:`DEFAULT_MAX_BACKLOG` = 10 000, 0.75 s of the paper robot's nominal 13 400 frames/s; ~180
+:data:`gateway.config.DEFAULT_MAX_BACKLOG` = 10 000, 0.75 s of the paper robot's nominal 13 400 frames/s; ~180
 bytes per waiting frame). Receiving never blocks on it: when the backlog reaches ``max_backlog``
 the service sheds load, dropping every arriving frame until the backlog is back to
 ``resume_backlog`` (90 % of it), so what gets through comes in contiguous runs that still make
@@ -73,7 +73,7 @@ from drivers.receive import reader_for
 from drivers.samples import BusHealth
 from gateway import codec
 from gateway.engine import Session, Sink
-from gateway.config import DEFAULT_MAX_BACKLOG, RECEIVE_MODES, GatewayConfig  # noqa: F401 - the service's settings
+from gateway.config import GatewayConfig
 from gateway.engine.sinks import RecorderSink
 
 log = logging.getLogger(__name__)

@@ -307,17 +307,9 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                 """What the replay wrote, for the report (rows: no object built for it)."""
 
                 rows = True
-                keys = None
-
-                def _keys(self, session):
-                    if self.keys is None:
-                        from gateway.engine.encode import RowEncoders
-
-                        self.keys = RowEncoders(session.pipeline)
-                    return self.keys
 
                 def sample_rows(self, session, events, log_ns) -> None:
-                    table = self._keys(session).sample_key
+                    table = session.encoders().sample_key
                     kinds["samples"] += len(events)
                     # a count per (kind, device) of the batch, not a Python step per sample
                     pair = events["kind"].astype(np.int64) << 32 | events["device"].astype(np.int64)
@@ -325,7 +317,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                         by_key[table[p >> 32][p & 0xFFFFFFFF]] += n
 
                 def effort_rows(self, session, rows, log_ns) -> None:
-                    names = self._keys(session).effort_key
+                    names = session.encoders().effort_key
                     for key in names:
                         by_key[key] += len(rows)
                     kinds["efforts"] += len(rows) * len(names)
