@@ -73,6 +73,21 @@ def record(case: FaultCase, path: str | os.PathLike[str]) -> Path:
     return path
 
 
+def _record_job(job: tuple[FaultCase, str]) -> str:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    case, path = job
+    record(case, path)
+    return path
+
+
+def record_many(cases: dict[str, FaultCase], folder: str | os.PathLike[str], workers: int = 2) -> dict[str, Path]:
+    """:func:`record` of every case, ``folder/<name>.mcap``, on ``workers`` processes; name -> path."""
+    from gateway.parallel import map_jobs
+
+    jobs = [(case, str(Path(folder) / f"{name}.mcap")) for name, case in cases.items()]
+    return {name: Path(p) for name, p in zip(cases, map_jobs(_record_job, jobs, workers=workers))}
+
+
 @dataclass
 class Verdict:
     """What the detector said about one case, judged."""

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from gateway.analysis.fdi import _decode, _layout_and_robot, analyze_thrusters, detect, event_stream
-from harness.fdi import FaultCase, judge, record
+from harness.fdi import FaultCase, judge, record_many
 
 ROOT = Path(__file__).resolve().parents[3]
 ONSET = 3.0
@@ -31,21 +31,9 @@ CASES = {
 }
 
 
-def _record(job):
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    case, path = job
-    record(case, path)
-    return path
-
-
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
-    from gateway.parallel import map_jobs
-
-    d = tmp_path_factory.mktemp("fdi")
-    jobs = [(case, str(d / f"{name}.mcap")) for name, case in CASES.items()]
-    paths = map_jobs(_record, jobs, workers=2)
-    return {name: Path(p) for name, p in zip(CASES, paths)}
+    return record_many(CASES, tmp_path_factory.mktemp("fdi"))
 
 
 def test_healthy_session_raises_nothing(sessions):

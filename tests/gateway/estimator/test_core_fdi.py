@@ -10,32 +10,19 @@ fault it is about 20 %; bsc replay gives the same efforts byte for byte and the 
 healthy session raises nothing and flags nothing."""
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import pytest
 
-from harness.fdi import FaultCase, judge, record
+from harness.fdi import FaultCase, judge, record_many
 
 ONSET = 3.0
 CASES = {"closed2": FaultCase(duration_s=5.0, thruster=2, fault="stuck_closed", onset_s=ONSET),
          "healthy": FaultCase(seed=11, duration_s=5.0)}
 
 
-def _record(job):
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    case, path = job
-    record(case, path)
-    return path
-
-
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
-    from gateway.parallel import map_jobs
-
-    d = tmp_path_factory.mktemp("core_fdi")
-    jobs = [(case, str(d / f"{name}.mcap")) for name, case in CASES.items()]
-    return {name: Path(p) for name, p in zip(CASES, map_jobs(_record, jobs, workers=2))}
+    return record_many(CASES, tmp_path_factory.mktemp("core_fdi"))
 
 
 def _published(path):
