@@ -82,11 +82,15 @@ def quintic(t: float, T: float) -> tuple[float, float]:
 
 
 class Controller:
-    def __init__(self, robot: Robot, cfg, target: Target):
+    def __init__(self, robot: Robot, cfg, target: Target, limit_fraction: float = 1.0):
+        """``limit_fraction``: the commands saturate at this fraction of the joints' torque
+        limits (1: at the limits; less leaves the drives headroom for an inner loop)."""
+        if not 0.0 < limit_fraction <= 1.0:
+            raise ValueError(f"command limit must be a fraction in (0, 1] of the torque limits, got {limit_fraction!r}")
         self.robot, self.cfg, self.target = robot, cfg, target
         self.model, self.data = robot.model, robot.model.createData()
         self.kp, self.kd, self.damp = cfg.kp, cfg.kd, cfg.joint_damping
-        self.limit = robot.effort_limit
+        self.limit = robot.effort_limit * limit_fraction
         self._neg_limit = -self.limit
         self.x0: np.ndarray | None = None
         self.base_p0: np.ndarray | None = None

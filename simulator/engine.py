@@ -31,6 +31,7 @@ from robot_description import Robot
 
 from .controller import Controller, Target, pregrasp_ik
 from .dynamics import DivergenceError, Dynamics, Friction
+from .errors import SimulatorError
 from .scenario import Scenario
 from .sensors import Encoders, ForceTorqueSensors, Imu, cross_rows
 from .thrusters import PWPFM, Allocator, Layout, ThrusterErrors
@@ -38,6 +39,10 @@ from .truth import Trace
 
 DT_S = 1e-3          # physics, F/T and encoder rate: 1 kHz
 DT_NS = 1_000_000
+
+
+class DriveCommandError(SimulatorError, ValueError):
+    """A drive command the simulated robot cannot take (wrong size, not finite, drives not external)."""
 
 
 @dataclass
@@ -75,7 +80,8 @@ SENSE_BLOCK = 1024      # steps of raw truth run through the sensor models at on
 
 
 class Simulation:
-    def __init__(self, scenario: Scenario, robot: Robot | None = None, friction: bool = True):
+    def __init__(self, scenario: Scenario, robot: Robot | None = None, friction: bool = True,
+                 external_drives: bool = False, command_limit: float = 1.0):
         self.scenario = sc = scenario
         cfg = sc.cfg
         self.robot = robot or robot_description.load(sc.robot)
@@ -99,7 +105,7 @@ class Simulation:
         q = pregrasp_ik(r, q, g + cfg.controller.standoff_m * outward)
         self.dyn.q = q
 
-        self.ctrl = Controller(r, cfg.controller, self.target)
+        self.ctrl = Controller(r, cfg.controller, self.target, limit_fraction=command_limit)
         self.ctrl.start(q)
         self.ctrl_every = max(1, round(1.0 / (cfg.controller.rate_hz * DT_S)))
         self.base_every = max(1, round(1.0 / (cfg.controller.base_rate_hz * DT_S)))
@@ -134,6 +140,11 @@ class Simulation:
         self._ee = np.zeros(3 * len(r.arms))
         self.trace = Trace.allocate(self)
         self._rows = tuple(self.trace.arrays[name] for name in ("q", "v", "a", "tau_friction", "stuck"))
+        # external drive commands (closed loop through the gateway): the joint drives apply the
+        # latest command given to command_drives() instead of the flight software's output
+        self.external_drives = external_drives
+        self._drive_cmd: np.ndarray | None = None
+        self.drive_applied = np.zeros((self.n_steps, r.n_joints)) if external_drives else None
         # raw truth not kept in the trace: force transmitted by each arm's first joint (its frame)
         self._f_joint = np.zeros((self.n_steps, len(r.arms), 6))
         self._sensed = 0                      # rows [0, _sensed) have been through the sensor models
@@ -236,8 +247,13 @@ class Simulation:
         if j == 0:
             self._base_control(k, q, v)
 
+        tau = self.tau_cmd
+        if self.external_drives:
+            if self._drive_cmd is not None:
+                tau = self._drive_cmd
+            self.drive_applied[k] = tau
         try:
-            a = dyn.step(self._wrench_chunk[j], self.tau_cmd)
+            a = dyn.step(self._wrench_chunk[j], tau)
         except DivergenceError as exc:
             raise exc.at((k + 1) * DT_S) from None
 
@@ -302,7 +318,8 @@ class Simulation:
         del out[:keep - i0]
         self._ctrl_i0 = keep
         A["t_s"][k0:k1] = t
-        np.add(A["tau_cmd"][k0:k1], A["tau_friction"][k0:k1], out=A["tau_act"][k0:k1])
+        applied = A["tau_cmd"] if self.drive_applied is None else self.drive_applied
+        np.add(applied[k0:k1], A["tau_friction"][k0:k1], out=A["tau_act"][k0:k1])
         # classical acceleration of C, body frame: a_lin + w x v_lin
         A["base_acc"][k0:k1, :3] = a[:, :3] + cross_rows(v[:, 3:6], v[:, :3])
         A["base_acc"][k0:k1, 3:] = a[:, 3:6]
@@ -335,6 +352,22 @@ class Simulation:
             tr.n_imu = s1
         tr.n = self._sensed = k1
         return ft_sat, imu_sat
+
+    def command_drives(self, tau_nm) -> None:
+        """The joint drives' command from now on, (n,) N m in v order, held until the next one
+        (``external_drives=True`` only). The flight software still computes its own command
+        (``tau_cmd`` in the trace, what the arm bus carries: the desired torque); the drives
+        apply this one instead, saturated at the joints' torque limits as a drive would. Until
+        the first call they apply the flight software's command. The trace's ``tau_act`` is the
+        applied command plus friction; :attr:`drive_applied` holds the applied command per step."""
+        if not self.external_drives:
+            raise DriveCommandError("command_drives: this simulation's drives take the flight software's "
+                                 "commands (create it with external_drives=True)")
+        tau = np.asarray(tau_nm, dtype=float)
+        if tau.shape != (self.robot.n_joints,) or not np.all(np.isfinite(tau)):
+            raise DriveCommandError(f"command_drives: expected {self.robot.n_joints} finite torques, N m, "
+                                 f"got shape {tau.shape}")
+        self._drive_cmd = np.clip(tau, -self.robot.effort_limit, self.robot.effort_limit)
 
     # ------------------------------------------------------------------------------------------
     def step(self) -> Readings:
