@@ -1,0 +1,14 @@
+"""The inner loop the paper left open: corrections to the actuators' commands from the gateway's
+estimates of what they really deliver.
+
+- :mod:`gateway.control.joints`: the joint loop (:class:`JointCompensator`), a pure core fed the
+  outer loop's desired torques and the gateway's efforts, returning the drives' commands;
+- :mod:`gateway.control.messages`: what it publishes (:class:`DriveCommand`) and under which keys;
+- :mod:`gateway.control.service`: ``bsc control``, the core on zenoh.
+
+docs/control.md describes the loop, its safety behaviour and what it achieves.
+"""
+from gateway.control.joints import JointCompensator, JointLoopSettings, LoopEvent
+from gateway.control.messages import ControlError, DriveCommand
+
+__all__ = ["ControlError", "DriveCommand", "JointCompensator", "JointLoopSettings", "LoopEvent"]

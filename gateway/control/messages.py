@@ -1,0 +1,115 @@
+"""What the compensator publishes: the joint drives' command, and its zenoh keys.
+
+``bsc/<robot>/commands/drives/<arm>`` (:func:`drive_key`): a :class:`DriveCommand` per arm, the
+command the drives should apply. Only the controller role may publish under
+``bsc/<robot>/commands/**`` (deploy/zenoh/router.json5); the gateway never does.
+``bsc/<robot>/commands/status`` (:func:`status_key`): the compensator's loop transitions (open
+<-> closed, per arm) as :class:`gateway.efforts.Alert` records, under the controller's key space
+because that role may publish nowhere else.
+
+Payloads are the house's JSON form (:func:`gateway.log.schema.record_of`:
+``{"type": "DriveCommand", "v": 1, ...}``), decoded strictly by :func:`decode_drive_command`.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, fields
+
+from gateway import keys
+from gateway.errors import GatewayError
+from gateway.log.schema import FORM_VERSION, record_of
+
+
+class ControlError(GatewayError, ValueError):
+    """Root of the compensator's errors: bad settings, a payload that is not a drive command."""
+
+
+@dataclass(frozen=True, slots=True)
+class DriveCommand:
+    """The motor torque command for one arm's joint drives, N m, joint order proximal first.
+
+    ``t_ns``: sensor time of the outer loop's command it corrects (the desired torques observed on
+    the arm bus). ``torque_nm`` = ``desired_nm`` + ``correction_nm``, saturated at each joint's
+    torque limit. ``closed``: False when the compensator is open loop for this arm
+    (``correction_nm`` all zero, ``torque_nm`` = the desired torques); ``flags`` says why
+    (``stale:efforts``, ``estimate:not-good``, ``resuming``, ``limited:magnitude``, ...).
+    """
+
+    arm: str
+    t_ns: int
+    joints: tuple[str, ...]
+    torque_nm: tuple[float, ...]
+    desired_nm: tuple[float, ...]
+    correction_nm: tuple[float, ...]
+    closed: bool
+    flags: tuple[str, ...] = ()
+
+
+def drive_key(robot: str, arm: str) -> str:
+    """``bsc/<robot>/commands/drives/<arm>``."""
+    if not arm or set(arm) & set("*$?#/ "):
+        raise keys.KeyExprError(f"{arm!r} cannot be a key expression chunk (empty, or contains one of '*$?#/ ')")
+    return f"{keys.robot_root(robot)}/commands/drives/{arm}"
+
+
+def drives_key(robot: str) -> str:
+    """Every arm's drive commands of ``robot``."""
+    return f"{keys.robot_root(robot)}/commands/drives/**"
+
+
+def status_key(robot: str) -> str:
+    """``bsc/<robot>/commands/status``: the compensator's loop transitions (Alert records)."""
+    return f"{keys.robot_root(robot)}/commands/status"
+
+
+def encode_drive_command(cmd: DriveCommand) -> bytes:
+    """The JSON payload; a non-finite torque is refused (JSON has none)."""
+    try:
+        return json.dumps(record_of(cmd), allow_nan=False, separators=(",", ":")).encode()
+    except ValueError as exc:
+        raise ControlError(f"DriveCommand: {exc}") from None
+
+
+_NAMES = tuple(f.name for f in fields(DriveCommand))
+
+
+def decode_drive_command(payload: bytes | bytearray | memoryview | str) -> DriveCommand:
+    """Bytes -> :class:`DriveCommand`; :class:`ControlError` on anything else (strict: every field
+    present with its type, the torque vectors as long as the joint list, finite numbers)."""
+    try:
+        obj = json.loads(bytes(payload) if not isinstance(payload, str) else payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ControlError(f"drive command: not JSON: {exc}") from None
+    if not isinstance(obj, dict) or obj.get("type") != "DriveCommand":
+        raise ControlError("drive command: not a DriveCommand record")
+    if obj.get("v") != FORM_VERSION:
+        raise ControlError(f"drive command: unsupported version {obj.get('v')!r}")
+    extra = set(obj) - {"type", "v"} - set(_NAMES)
+    missing = set(_NAMES) - {"flags"} - set(obj)
+    if extra or missing:
+        raise ControlError(f"drive command: unknown fields {sorted(extra)}, missing {sorted(missing)}")
+
+    def strings(name):
+        v = obj.get(name, [])
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise ControlError(f"drive command: {name} must be an array of strings")
+        return tuple(v)
+
+    joints = strings("joints")
+
+    def numbers(name):
+        v = obj[name]
+        if (not isinstance(v, list) or len(v) != len(joints)
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            raise ControlError(f"drive command: {name} must be {len(joints)} finite numbers")
+        return tuple(float(x) for x in v)
+
+    if not isinstance(obj["arm"], str) or not obj["arm"]:
+        raise ControlError("drive command: arm must be a name")
+    if not isinstance(obj["t_ns"], int) or isinstance(obj["t_ns"], bool):
+        raise ControlError("drive command: t_ns must be an integer")
+    if not isinstance(obj["closed"], bool):
+        raise ControlError("drive command: closed must be true or false")
+    return DriveCommand(obj["arm"], obj["t_ns"], joints, numbers("torque_nm"), numbers("desired_nm"),
+                        numbers("correction_nm"), obj["closed"], strings("flags"))
