@@ -59,8 +59,8 @@ SHORT, LONG = 0, 1
 
 # the detector's constants (float64 array, :meth:`FdiSettings.config`)
 (_C_LAM, _C_THETA1, _C_H, _C_THETA_MIN, _C_HOLD, _C_SUSPECT, _C_CONFIRM, _C_WARMUP,
- _C_N) = 0, 1, 2, 4, 6, 8, 10, 12, 13
-_NCFG = 14
+ _C_N, _C_GATE) = 0, 1, 2, 4, 6, 8, 10, 12, 13, 14
+_NCFG = 15
 # its state (float64 array): a header; per hypothesis the short window's A and B, the CUSUM, its
 # A and B since it last left zero, and whether it was raised; the faults (:data:`_NF` numbers
 # each); the alarm rows (:data:`EVENT_FIELDS`)
@@ -93,7 +93,12 @@ class FdiSettings:
     fault's size is estimated on its own, which gives the type; ``suspect``: above it (short
     GLR) or above 3/4 of ``h_long`` (CUSUM) the filter stops learning (a fault must not be learnt
     into the healthy model while it is being decided); ``warmup_s``: no alarm while the filter
-    converges from its prior."""
+    converges from its prior; ``gate``: otherwise the filter learns from an IMU sample only when
+    its normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) is at most this (the
+    sample that first shows a gross fault comes before the detector has seen it: a stuck-closed
+    valve that had not fired before lost a third of its nominal wrench to the filter in that one
+    update, and was then typed a partial loss; healthy capture and three_arm sessions peak near
+    60, a valve stuck at its first firing gives 110-150)."""
 
     short_s: float = 0.1
     h_short: float = 200.0
@@ -107,6 +112,7 @@ class FdiSettings:
     confirm_long: int = 250
     suspect: float = 40.0
     warmup_s: float = 1.5
+    gate: float = 80.0
 
     def config(self, n: int, imu_period_s: float) -> np.ndarray:
         c = np.zeros(_NCFG)
@@ -119,6 +125,7 @@ class FdiSettings:
         c[_C_CONFIRM], c[_C_CONFIRM + 1] = self.confirm_short, self.confirm_long
         c[_C_WARMUP] = round(self.warmup_s / imu_period_s)
         c[_C_N] = n
+        c[_C_GATE] = self.gate
         return c
 
 
@@ -136,7 +143,7 @@ def state_size(n: int, max_events: int) -> int:
 def new_state(n: int, max_events: int = 64) -> np.ndarray:
     st = np.zeros(state_size(n, max_events))
     st[_S_BEST], st[_S_BEST + 1] = -1.0, -1.0
-    st[_S_LEARN] = 1.0
+    st[_S_LEARN] = math.inf
     return st
 
 
@@ -212,10 +219,11 @@ def _best(st: F64, h_all: int, w: int) -> tuple[int, float]:
 
 
 @_jit
-def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
+def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float:
     """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
-    detector state ``st``. Returns whether the filter may learn from the next update (False while
-    a fault is suspected or being confirmed). Confirmed alarms are appended to the state's alarm
+    detector state ``st``. Returns what the filter may learn from the next update, its ``learn``
+    (:func:`learning`): 0.0 while a fault is suspected or being confirmed, else the innovation
+    gate (``math.inf`` during the warm-up). Confirmed alarms are appended to the state's alarm
     rows (:func:`events`); a confirmed fault is then the filter's to model (:func:`valve_mask`,
     :func:`accommodate`). ``Wnom`` (n, 6): nominal valve wrenches ``[force; moment about C]``
     (body frame; N, N m); ``Ha`` (18,): the accelerometer rows' map of a wrench, row-major 3 x 6.
@@ -224,7 +232,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     those updates alone. Until the filter models it, its signature times its size is taken out
     of the innovation the other hypotheses see."""
     if tap[tk.TAP_APPLIED] == 0.0:
-        return bool(st[_S_LEARN] != 0.0)
+        return st[_S_LEARN]
     n = int(cfg[_C_N])
     h_all = 2 * n
     fbase = _S_HDR + 6 * h_all
@@ -233,7 +241,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
     S = tap[tk.TAP_S:tk.TAP_S + 36].reshape((6, 6))      # row-major, stride 6
     L = np.zeros((6, 6))
     if not tk.cholesky(S, m, L):
-        return bool(st[_S_LEARN] != 0.0)
+        return st[_S_LEARN]
     e = np.zeros(6)
     for r in range(m):
         e[r] = tap[tk.TAP_E + r]
@@ -336,7 +344,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
                 st[_S_HDR + _CA * h_all + k] += a
                 st[_S_HDR + _CB * h_all + k] += b
     if upd <= cfg[_C_WARMUP]:
-        return True
+        st[_S_LEARN] = math.inf
+        return math.inf
     suspect = confirming
     gross = False
     for w in range(2):
@@ -375,8 +384,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> bool:
         st[_S_NFAULTS] = nf
         confirming = True
         suspect = True
-    learn = not suspect
-    st[_S_LEARN] = 1.0 if learn else 0.0
+    learn = 0.0 if suspect else cfg[_C_GATE]
+    st[_S_LEARN] = learn
     return learn
 
 
@@ -414,9 +423,11 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
 
 
 @_jit
-def learning(st: F64) -> bool:
-    """Whether the filter may learn from the next IMU update (:func:`observe`'s last verdict)."""
-    return bool(st[_S_LEARN] != 0.0)
+def learning(st: F64) -> float:
+    """What the filter may learn from the next IMU update, the ``learn`` of
+    :func:`.thruster_kernel.imu_tap` (:func:`observe`'s last verdict): 0.0 nothing, else the
+    largest normalised innovation squared it learns from."""
+    return float(st[_S_LEARN])
 
 
 @_jit
@@ -465,7 +476,7 @@ def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
     N m) with the faults found so far modelled; zero for IMU events."""
     n = Wnom.shape[0]
     h_all = 2 * n
-    learn = st[_S_LEARN] != 0.0
+    learn = st[_S_LEARN]
     for k in range(kind.shape[0]):
         kd = kind[k]
         for q in range(4):

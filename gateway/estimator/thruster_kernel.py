@@ -221,12 +221,16 @@ def _downdate(P: F64, Bt: F64, m: int, ilo: int, ihi: int, jlo: int, jhi: int) -
                 Pi[j] = ((Pi[j] - b0 * B0[j]) - b1 * B1[j]) - b2 * B2[j]
 
 
+_APPLIED, _NOT_PD, _GATED = 0, 1, 2     # what _update did
+
+
 @_jit
-def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64) -> bool:
+def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, gate: float) -> int:
     """Kalman update with the m (3 or 6) sparse rows ``hc``/``hv``/``hn`` of H (column indices,
     values, count per row), measurement ``y`` and noise variances ``R``, on the active rows and
-    columns (``ist`` runs). Returns False (nothing changed) when S is not positive definite (a NaN
-    or inf in P)."""
+    columns (``ist`` runs), when the normalised innovation squared ``e^T S^-1 e`` is at most
+    ``gate``. Returns :data:`_APPLIED`, :data:`_NOT_PD` (nothing changed: S is not positive
+    definite, a NaN or inf in P) or :data:`_GATED` (nothing changed)."""
     ns = x.shape[0]
     nr = ist[_NRUNS]
     # Bt = (P H^T)^T on the active columns; P[c, :] is P[:, c] (P bitwise symmetric)
@@ -253,9 +257,10 @@ def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64,
         S[r, r] += R[r]
     L = np.zeros((m, m))
     if not cholesky(S, m, L):
-        return False
+        return _NOT_PD
     # z = L^-1 (y - H x)
     z = np.empty(m)
+    nis = 0.0
     for r in range(m):
         acc = 0.0
         for k in range(hn[r]):
@@ -264,6 +269,9 @@ def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64,
         for k in range(r):
             v -= L[r, k] * z[k]
         z[r] = v / L[r, r]
+        nis += z[r] * z[r]
+    if not nis <= gate:
+        return _GATED
     # B = P H^T L^-T in place: row r of Bt from rows 0..r-1
     for a in range(nr):
         lo, hi = ist[_RUNS + 2 * a], ist[_RUNS + 2 * a + 1]
@@ -288,7 +296,7 @@ def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64,
         for a2 in range(nr):
             _downdate(P, Bt, m, ist[_RUNS + 2 * a], ist[_RUNS + 2 * a + 1],
                       ist[_RUNS + 2 * a2], ist[_RUNS + 2 * a2 + 1])
-    return True
+    return _APPLIED
 
 
 @_jit
@@ -300,7 +308,7 @@ def imu(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hi
     innovation covariance is not positive definite (a NaN or inf in P); the random walk is then
     already applied and nothing else."""
     return imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel_imu, rate_imu,
-                   np.empty(0), True)
+                   np.empty(0), math.inf)
 
 
 # the innovation tap of imu_tap (float64 row): applied, rows, e = y - H x (6), S = H P H^T + R
@@ -347,12 +355,16 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
 
 @_jit
 def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
-            fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: bool) -> bool:
+            fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float) -> bool:
     """:func:`imu`, and when ``tap`` is not empty (length :func:`tap_size`) the update's
     innovation written into it before the update (``tap[TAP_APPLIED]`` 0 when nothing was
-    applied). The tap only reads the state: with ``learn`` the filter's bits are :func:`imu`'s.
-    Without ``learn`` the sample is measured (the tap, the random walk) but ``x`` is not updated
-    (the fault detector's hold while it suspects a fault, :mod:`.fdi`)."""
+    applied). The tap only reads the state. ``learn``: the largest normalised innovation squared
+    ``e^T S^-1 e`` the filter learns from. ``math.inf``: every sample, the filter's bits are
+    :func:`imu`'s; ``0.0``: none, the sample is measured (the tap, the random walk) but ``x`` and
+    ``P`` are not updated (the fault detector's hold while it suspects a fault, :mod:`.fdi`); in
+    between, an innovation gate (the detector's: the sample that first shows a gross fault is not
+    learnt into the healthy model before the detector has seen it). True when the sample was
+    measured, learnt or not."""
     want = tap.shape[0] > 0
     if want:
         tap[TAP_APPLIED] = 0.0
@@ -475,14 +487,16 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     ist[_LAST_NS] = t_ns
     if want:
         _tap(x, P, m, y, hc, hv, hn, R, cnt, float(nn), vt, tap)
-    if not learn:
+    if not learn > 0.0:
         return True
     support &= (np.int64(1) << n) - 1
     if support & ~ist[_ACTIVE]:
         _set_runs(ist, n, ist[_ACTIVE] | support)
-    if not _update(x, P, ist, m, y, hc, hv, hn, R):
+    done = _update(x, P, ist, m, y, hc, hv, hn, R, learn)
+    if done == _NOT_PD:
         raise ValueError("innovation covariance not positive definite")
-    ist[_UPDATES] += 1
+    if done == _APPLIED:
+        ist[_UPDATES] += 1
     return True
 
 

@@ -7,6 +7,8 @@ Checked: the tap leaves the filter's bits alone and its innovation is the numpy 
 loss are named (thruster, type) with their size against the stream's truth."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -106,7 +108,7 @@ def test_tap_leaves_the_filters_bits_alone_and_is_the_numpy_filters_innovation(p
             x_before = ref.x.copy()
             applied = ref.imu(t, a, w)
             assert plain.imu(t, a, w) == applied
-            assert tk.imu_tap(*tapped.state, t, a, w, tap, True) == applied
+            assert tk.imu_tap(*tapped.state, t, a, w, tap, math.inf) == applied
             assert tap[tk.TAP_APPLIED] == float(applied)
             if applied:
                 rows = int(tap[tk.TAP_ROWS])
@@ -135,7 +137,7 @@ def test_without_learning_the_state_stays_and_the_tap_still_reports(paper):
     for k in range(len(ev["kind"])):
         t = int(ev["t_ns"][k])
         if ev["kind"][k] == tk.IMU:
-            if tk.imu_tap(*kf.state, t, ev["accel"][k], ev["rate"][k], tap, False):
+            if tk.imu_tap(*kf.state, t, ev["accel"][k], ev["rate"][k], tap, 0.0):
                 reported += tap[tk.TAP_APPLIED] == 1.0
         else:
             kf.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
