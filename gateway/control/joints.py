@@ -21,7 +21,7 @@ Safety, per arm (:class:`JointCompensator`):
   ``stale:efforts`` (the gateway stopped, the link dropped);
 - going open is never rate-limited (it is always safe); closing again takes ``resume_good`` good
   estimates in a row, then the correction ramps up from zero under the rate limit (flag
-  ``resuming`` until it is no longer rate-limited);
+  ``limited:rate`` while it does);
 - the correction is magnitude-limited (``max_correction`` of the joint's torque limit) and
   rate-limited, so a wrong estimate that passes as good moves the command by a bounded amount at
   a bounded speed (flags ``limited:magnitude``, ``limited:rate``).

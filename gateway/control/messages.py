@@ -33,7 +33,8 @@ class DriveCommand:
     the arm bus). ``torque_nm`` = ``desired_nm`` + ``correction_nm``, saturated at each joint's
     torque limit. ``closed``: False when the compensator is open loop for this arm
     (``correction_nm`` all zero, ``torque_nm`` = the desired torques); ``flags`` says why
-    (``stale:efforts``, ``estimate:not-good``, ``resuming``, ``limited:magnitude``, ...).
+    (open: ``no-estimate``, ``stale:efforts``, ``estimate:not-good (<its flags>)``, ``disabled``;
+    closed: ``limited:rate``, ``limited:magnitude``, ``saturated``).
     """
 
     arm: str

@@ -1,6 +1,7 @@
 """``bsc demo``: the main job, end to end, with no external server.
 
     bsc demo [--out bsc-demo] [--scenario capture] [--robot FILE.urdf] [--no-sweep] [--report-only]
+             [--closed-loop]
 
 The paper's capture scenario through simulator -> CAN (python-can virtual) -> drivers ->
 estimator -> zenoh (a router on loopback) -> a zenoh subscriber; judged against the simulator's
@@ -14,6 +15,13 @@ run in two worker processes through the same drivers + estimator without buses o
 (:func:`harness.demo.run_offline`); the wrong-model run then feeds the live run's own frames (the
 nominal simulation, frame for frame) to a pipeline whose model is 5 % off
 (:func:`harness.demo.run_frames`). ``report.json`` ``timings`` says where the wall time went.
+
+``--closed-loop`` then closes the inner loop (:mod:`harness.closed_loop`, docs/control.md): the
+scenario without friction, with friction open loop, and with friction compensated through the
+gateway (lockstep), once as configured and once with the outer loop limited to 70 % of the torque
+limits; ``report.json`` ``closed_loop`` (``closed_loop.headroom``) and the figures
+``closed_loop_ee_error.png``, ``closed_loop_joint_torques.png`` (``closed_loop_headroom_*.png``).
+Its targets (the first case) count in the exit status.
 
 Exit status: 0 when every judged figure meets its target, 3 (``EXIT_TARGETS_MISSED``) when one
 misses, so that CI fails on an accuracy regression; ``--report-only`` reports misses and exits 0.
@@ -49,6 +57,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--report-only", action="store_true",
                    help="report the accuracy without judging it: exit 0 even when a target is missed")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="also close the inner loop (docs/control.md): the scenario without friction, with friction "
+                        "open loop, and with friction compensated through the gateway, in lockstep; report.json "
+                        "closed_loop and the closed_loop_*.png figures; its targets are judged too")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -193,6 +205,11 @@ def run(args: argparse.Namespace) -> int:
                           band=(f"{demo.BAND_HZ:g} Hz band", demo.lowpass), notes=thr_notes)
     plots.trajectories(trace, args.out / "trajectories.png")
     timings["outputs_s"] = round(time.perf_counter() - t, 2)
+    closed_missed: list[str] = []
+    if args.closed_loop:
+        t = time.perf_counter()
+        report["closed_loop"], closed_missed = _closed_loop(sc, args.out, progress=not args.quiet)
+        timings["closed_loop_s"] = round(time.perf_counter() - t, 2)
     report["wall_s"] = round(time.perf_counter() - t0, 1)
     report["timings"] = timings
     (args.out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -202,16 +219,47 @@ def run(args: argparse.Namespace) -> int:
     if "noise_sweep" in report:
         print()
         print(_sweep_table(report))
+    if args.closed_loop:
+        from harness import closed_loop
+
+        print()
+        print(closed_loop.format_table(report["closed_loop"], "the scenario as it is"))
+        print()
+        limited = f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits"
+        print(closed_loop.format_table(report["closed_loop"]["headroom"], limited))
     status = exit_status(acc, args.report_only)
+    if closed_missed and not args.report_only:
+        from gateway.cli import EXIT_TARGETS_MISSED
+
+        status = EXIT_TARGETS_MISSED
     print(f"\nwrote report.json, {'session.mcap, ' if record else ''}truth.npz and figures to {args.out}/ "
           f"in {report['wall_s']} s")
-    if acc["pass"]:
+    if acc["pass"] and not closed_missed:
         print("all targets met")
     else:
         how = "--report-only: exit status 0" if args.report_only else f"exit status {status}"
         print(f"SOME TARGETS MISSED ({how}):")
-        print("\n".join(f"  {m}" for m in demo.missed(acc)))
+        print("\n".join(f"  {m}" for m in demo.missed(acc) + closed_missed))
     return status
+
+
+def _closed_loop(sc, out: Path, progress: bool) -> tuple[dict, list[str]]:
+    """The closed-loop study (harness.closed_loop) on the scenario as it is, then with the outer
+    loop's commands limited to HEADROOM of the torque limits (the drives keep room to cancel
+    the friction); figures for both. Returns (report.json's closed_loop block, targets missed by
+    the first)."""
+    from harness import closed_loop
+
+    study, traces = closed_loop.closed_loop_study(sc, progress=progress)
+    closed_loop.plot_ee_error(traces, study, out / "closed_loop_ee_error.png", f"{sc.name}, as configured")
+    closed_loop.plot_joint_torques(traces, study, out / "closed_loop_joint_torques.png", f"{sc.name}, as configured")
+    del traces
+    room, traces = closed_loop.closed_loop_study(sc, command_limit=closed_loop.HEADROOM, progress=progress)
+    what = f"{sc.name}, outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits"
+    closed_loop.plot_ee_error(traces, room, out / "closed_loop_headroom_ee_error.png", what)
+    closed_loop.plot_joint_torques(traces, room, out / "closed_loop_headroom_joint_torques.png", what)
+    study["headroom"] = room
+    return study, closed_loop.missed(study)
 
 
 def _sweep_table(report: dict) -> str:

@@ -1,0 +1,93 @@
+"""The closed inner loop in lockstep: simulator -> firmware frames -> session -> compensator -> the
+simulator's drives, judged against the simulator's truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harness import closed_loop
+from simulator import scenario
+from simulator.engine import Simulation
+from simulator.firmware import Faults
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return scenario.load("capture", {"duration_s": 2.0})
+
+
+@pytest.fixture(scope="module")
+def study(capture):
+    # the outer loop leaves the drives 30 % of their limits: room to cancel 30 % Coulomb friction
+    return closed_loop.closed_loop_study(capture, command_limit=0.7)
+
+
+def test_compensation_removes_most_of_the_friction_error_with_headroom(study):
+    out, traces = study
+    # truth: friction makes the end effectors miss; compensation through the gateway wins back at
+    # least 90 % of that miss (the issue's stretch target), and the actual joint torques track the
+    # desired ones with at least 90 % less RMS error
+    ee = out["ee_rms_error_m"]
+    assert ee["open_loop"]["overall"] > 1.3 * ee["no_friction"]["overall"]
+    assert out["ee_friction_error_removed"]["overall"] >= 0.90
+    for arm in traces["open_loop"].meta["arms"]:
+        assert out["ee_friction_error_removed"][arm] >= 0.90, arm
+    assert out["joint_torque_error_cut"]["overall"] >= 0.90
+    for joint in traces["open_loop"].meta["joints"]:
+        assert out["joint_torque_error_cut"][joint] >= 0.85, joint
+    assert out["pass"]
+    assert out["loop"]["transitions"][0]["state"] == "closed"
+    assert all(t["state"] == "closed" for t in out["loop"]["transitions"])     # never opened again
+
+
+def test_the_report_has_the_issues_keys(study):
+    out, _ = study
+    for case in ("no_friction", "open_loop", "compensated"):
+        assert set(out["ee_rms_error_m"][case]) == {"arm0", "arm1", "overall"}
+    for case in ("open_loop", "compensated"):
+        assert out["joint_torque_rms_error_nm"][case]["overall"] >= 0
+        assert set(out["thruster_wrench_rms_error"][case]) == {"force_n", "moment_nm"}
+
+
+def test_the_closed_loop_is_deterministic(capture):
+    sc = capture.replace(duration_s=0.4)
+    a, _ = closed_loop.run_compensated(sc)
+    b, _ = closed_loop.run_compensated(sc)
+    assert np.array_equal(a.arrays["tau_act"], b.arrays["tau_act"])
+    assert np.array_equal(a.arrays["ee"], b.arrays["ee"])
+
+
+def test_disabled_the_same_path_is_the_open_loop(capture):
+    # the drives under the compensator's open-loop commands: the flight software's torque one step
+    # later, so the joint torque error is the open loop's (within 5 %), not the compensated one's
+    sc = capture.replace(duration_s=0.6)
+    tr, info = closed_loop.run_compensated(sc, enabled=False)
+    ol = Simulation(sc).run()
+    cut = closed_loop.removed(closed_loop.torque_rms(ol)["overall"], closed_loop.torque_rms(tr)["overall"])
+    assert abs(cut) < 0.05
+    assert all(c["closed"] == 0 for c in info["commands"].values())
+
+
+def test_a_silent_sensor_opens_the_loops_within_one_step_and_they_resume_when_estimates_return(capture):
+    # arm0's F/T sensor goes silent for 100 ms: the gateway's epochs need every sensor, so no
+    # estimate of either arm comes (then they come back flagged until the filters settle); both
+    # loops open once the last good estimate is stale_s old, and both close again
+    sc = capture.replace(duration_s=1.0)
+    tr, info = closed_loop.run_compensated(sc, command_limit=0.7, faults=Faults(silent=(("arm0", 0.6, 0.1),)))
+    ev = [(e["arm"], e["state"], e["t_s"]) for e in info["transitions"]]
+    stale = 0.010                                 # JointLoopSettings.stale_s
+    assert [(a, s) for a, s, _ in ev] == [("arm0", "closed"), ("arm1", "closed"), ("arm0", "open"), ("arm1", "open"),
+                                          ("arm0", "closed"), ("arm1", "closed")]
+    # open at the first command after the last good estimate (0.599 s) became stale: one step
+    assert all(0.599 + stale < t <= 0.599 + stale + 0.002 for _, s, t in ev[2:4])
+    assert info["transitions"][2]["reason"] == "stale:efforts"
+    assert info["flags"]["estimate:not-good"] > 0           # the flagged estimates after the gap
+    closed = info["closed"]
+    t = tr.arrays["t_s"]
+    during = (t > 0.612) & (t < 0.7)
+    assert not closed[during].any()
+    # open loop is the desired torque as the arm bus carried it: the drives applied the flight
+    # software's command of the step before, nothing added (within the wire's 0.05 N m resolution)
+    k = np.flatnonzero(during)
+    np.testing.assert_allclose(info["applied"][k], tr.arrays["tau_cmd"][k - 1], rtol=0, atol=0.025 + 1e-9)
+    assert closed[t > 0.85].all()
