@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("export", "write a session's raw CAN frames as a candump .log, .asc, .blf, .trc or .csv file"),
     "replay": ("replay", "replay a log offline through drivers + estimator, or live onto CAN or zenoh"),
     "monitor": ("monitor", "live monitoring over zenoh: residuals, friction, efficiency, sensor health, alerts"),
+    "control": ("control", "close the inner loop: joint drive commands corrected from the estimated torques"),
     "analyze": ("analyze", "actuator and sensor degradation from recorded sessions: friction, efficiency, trends"),
     "bench": ("bench", "run every benchmark: figures beside anchors of the same run, as ratios"),
 }
