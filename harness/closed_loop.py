@@ -200,17 +200,31 @@ def format_table(study: dict, label: str) -> str:
               f"{w['compensated']['moment_nm']:.1f} N m",
               "desired torque at its limit (some joint): " + ", ".join(
                   f"{case} {100 * v:.0f} %" for case, v in study["desired_at_torque_limit_fraction"].items())]
+    rt = study.get("realtime")
+    if rt is not None:
+        d, steps = rt["drives"] or {}, (rt["drives"] or {}).get("arm_steps_applied", {})
+        delay = d.get("desired_frame_to_drive_command_us") or {}
+        ee_rt = rt["ee_rms_error_m"]["compensated"]["overall"]
+        lines += [f"real time across processes: end-effector RMS error {ee_rt:.4f} m, "
+                  f"friction error removed {100 * rt['ee_friction_error_removed']['overall']:.1f} %, joint torque "
+                  f"error cut {100 * rt['joint_torque_error_cut']['overall']:.1f} %",
+                  f"  desired torques -> drive command at the robot: p50 {delay.get('p50_us', float('nan')):.0f} us, "
+                  f"p99 {delay.get('p99_us', float('nan')):.0f} us; arm-steps under a closed-loop command "
+                  f"{steps.get('closed', 0)}, open-loop {steps.get('open', 0)}, flight software's (none or later than "
+                  f"{d.get('max_age_us', float('nan')) / 1e3:g} ms) {steps.get('late_or_none', 0)}"]
     return "\n".join(lines)
 
 
 CASE_STYLE = {"no_friction": ("no friction", "tab:green", ":"),
               "open_loop": ("friction, open loop", "tab:red", "-"),
-              "compensated": ("friction, compensated through the gateway", "tab:blue", "-")}
+              "compensated": ("friction, compensated through the gateway", "tab:blue", "-"),
+              "realtime": ("friction, compensated, real time across processes", "tab:purple", "--")}
 
 
 def plot_ee_error(traces: dict, study: dict, path, title: str):
     """The paper's Figures 8-9 with the third curve: each end effector's position error over
-    time, no friction / friction open loop / friction compensated; dated."""
+    time, no friction / friction open loop / friction compensated (and compensated in real time
+    when ``traces`` has it); dated."""
     import datetime
 
     import matplotlib
@@ -219,18 +233,20 @@ def plot_ee_error(traces: dict, study: dict, path, title: str):
 
     arms = traces["open_loop"].meta["arms"]
     fig, axs = plt.subplots(len(arms), 1, figsize=(9, 2.6 * len(arms) + 1.0), sharex=True, squeeze=False)
-    ee = study["ee_rms_error_m"]
+    ee = {case: ee_rms(tr) for case, tr in traces.items()}
     for case, tr in traces.items():
         label, color, ls = CASE_STYLE[case]
         e = np.linalg.norm(tr["ee"] - tr["ee_des"], axis=2)
         for k, arm in enumerate(arms):
             axs[k, 0].plot(tr["t_s"], e[:, k], color=color, ls=ls, lw=1.4,
-                           label=f"{label} (RMS {ee[case][arm]:.3f} m)" if k == 0 else None)
+                           label=f"{label} (RMS {ee[case]['overall']:.3f} m)" if k == 0 else None)
     for k, arm in enumerate(arms):
         ax = axs[k, 0]
         rms = ", ".join(f"{c.replace('_', ' ')} {ee[c][arm]:.3f}" for c in traces)
-        removed_pct = 100 * study["ee_friction_error_removed"][arm]
-        ax.set_title(f"{arm}: RMS {rms} m; friction error removed {removed_pct:.0f} %", fontsize=9)
+        base, ol = ee["no_friction"][arm], ee["open_loop"][arm]
+        gone = ", ".join(f"{c.replace('_', ' ')} {100 * removed(ol, ee[c][arm], base):.0f} %"
+                         for c in traces if c in ("compensated", "realtime"))
+        ax.set_title(f"{arm}: RMS {rms} m; friction error removed: {gone}", fontsize=8)
         ax.set_ylabel("error [m]")
         ax.grid(alpha=0.3)
     axs[0, 0].legend(fontsize=8, loc="upper right")
@@ -283,3 +299,206 @@ def plot_joint_torques(traces: dict, study: dict, path, title: str):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# --- real time, across processes -------------------------------------------------------------
+
+class DriveInbox:
+    """The simulated robot's drives on zenoh: the latest :class:`DriveCommand` of each arm from
+    ``bsc/<robot>/commands/drives/**``, applied to ``sim`` (``external_drives=True``) at each
+    step (:meth:`apply`, from :func:`simulator.firmware.run_on_buses`'s ``on_step``).
+
+    A deadline, as a drive would enforce it: an arm's command is applied only while it is at most
+    ``max_age_s`` older than the wall clock (its ``t_ns``, the stamp of the desired torques it
+    corrects: host time in a real-time run); otherwise that arm's drives take the flight
+    software's own latest command (open loop), so a late loop never applies stale torques.
+    Latest-wins per arm (an older command arriving late is ignored). Records each command's
+    delay from its desired torques to its arrival here, and per step and arm whether a fresh
+    closed-loop command, a fresh open-loop one, or the flight software's command was applied."""
+
+    def __init__(self, session, sim, *, max_age_s: float = 0.005):
+        import threading
+
+        from gateway.control.messages import drives_key
+
+        self.sim, self.max_age_ns = sim, int(max_age_s * 1e9)
+        names = list(sim.robot.joint_names)
+        self.cols = {a.name: [names.index(f"{a.name}/{j}") for j in a.joint_names] for a in sim.robot.arms}
+        self.latest: dict[str, object] = {}
+        self.delays_ns: list[int] = []
+        self.steps = {"closed": 0, "open": 0, "late_or_none": 0}       # arm-steps by what the drives applied
+        self.received = 0
+        self.rejected = 0
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(drives_key(sim.robot.name), self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        import time
+
+        from gateway.control.messages import ControlError, decode_drive_command
+
+        now = time.time_ns()
+        try:
+            cmd = decode_drive_command(sample.payload.to_bytes())
+        except ControlError:
+            with self._lock:
+                self.rejected += 1
+            return
+        with self._lock:
+            self.received += 1
+            if cmd.arm not in self.cols or len(cmd.torque_nm) != len(self.cols[cmd.arm]):
+                self.rejected += 1
+                return
+            old = self.latest.get(cmd.arm)
+            if old is not None and old.t_ns >= cmd.t_ns:
+                return
+            self.latest[cmd.arm] = cmd
+            self.delays_ns.append(now - cmd.t_ns)
+
+    def apply(self, readings=None, now_ns: int | None = None) -> None:
+        """After a step went out: the drives' command for the next step (fresh commands from
+        zenoh, the flight software's for the arms without one)."""
+        import time
+
+        now = time.time_ns() if now_ns is None else now_ns
+        n = self.sim.robot.n_joints
+        drive, use = np.zeros(n), np.zeros(n, dtype=bool)
+        with self._lock:
+            for arm, cols in self.cols.items():
+                cmd = self.latest.get(arm)
+                if cmd is None or now - cmd.t_ns > self.max_age_ns:
+                    self.steps["late_or_none"] += 1
+                    continue
+                drive[cols] = cmd.torque_nm
+                use[cols] = True
+                self.steps["closed" if cmd.closed else "open"] += 1
+        self.sim.command_drives(drive, use)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def summary(self) -> dict:
+        x = sorted(self.delays_ns)
+        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))] / 1e3, 1)     # noqa: E731
+        delays = None if not x else {"p50_us": pick(0.5), "p90_us": pick(0.9), "p99_us": pick(0.99),
+                                     "max_us": round(x[-1] / 1e3, 1), "n": len(x)}
+        return {"received": self.received, "rejected": self.rejected, "max_age_us": self.max_age_ns / 1e3,
+                "arm_steps_applied": dict(self.steps), "desired_frame_to_drive_command_us": delays}
+
+
+class RealtimeError(RuntimeError):
+    """The real-time closed loop could not run (no network namespace, a process failed)."""
+
+
+def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None, command_limit: float = 1.0,
+                 rt_priority: int = 10, say=print):
+    """The closed loop in real time, across processes: ``bsc gateway`` (udp_multicast, the zenoh
+    router), ``bsc control`` and ``bsc sim --realtime --drives-from`` (the robot, its drives on
+    zenoh), each its own process, CAN over udp_multicast in a private network namespace (root and
+    iproute2, as the capacity benchmark). Returns (the compensated run's trace, the robot side's
+    summary: frames, pacing, and the drive commands' delays)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import robot_description
+    from drivers.wire import WireMap
+    from gateway.zenoh_config import free_port
+    from simulator import scenario as scenarios
+    from simulator.truth import Trace
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        from benchmarks.bench_latency import private_netns
+    except ImportError:
+        # the benchmarks live in the source tree beside the packages (as bsc bench finds them)
+        if not (root / "benchmarks" / "bench_latency.py").is_file():
+            raise RealtimeError(f"the real-time closed loop needs the source tree: no benchmarks/ in {root}") from None
+        sys.path.insert(0, str(root))
+        sys.modules.pop("benchmarks", None)
+        from benchmarks.bench_latency import private_netns
+    workdir = Path(workdir)
+    sc = scenarios.load(scenario_name, {} if duration_s is None else {"duration_s": duration_s})
+    robot = robot_description.load(sc.robot)
+    buses = list(WireMap.from_robot(robot).buses)
+    channels = [a for i, b in enumerate(buses) for a in ("-c", f"{b}=239.74.163.{i + 1}")]
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    with private_netns() as ns:
+        if ns is None:
+            raise RealtimeError("needs root and iproute2: CAN goes over udp_multicast in a private network namespace")
+        inside = ["ip", "netns", "exec", ns, sys.executable, "-m", "gateway.cli"]
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        run_for = str(sc.duration_s + 300)
+        procs = []
+
+        def start(args, what, ready, stream):
+            p = subprocess.Popen(inside + args, cwd=root, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+            procs.append(p)
+            line = getattr(p, stream).readline()
+            if ready not in line:
+                err = p.stderr.read()[-2000:] if stream == "stdout" else ""
+                raise RealtimeError(f"{what} did not start: {line} {err}")
+            return p
+
+        try:
+            start(["gateway", "-i", "udp_multicast", *channels, "--mode", "router", "--listen", ep, "--robot", sc.robot,
+                   "--duration", run_for], "bsc gateway", "receive", "stdout")
+            start(["control", "--mode", "client", "--connect", ep, "--robot", sc.robot, "--duration", run_for],
+                  "bsc control", "bsc control:", "stderr")
+            say(f"closed loop in real time: {sc.name}, {sc.duration_s:g} s, gateway + control + robot processes")
+            out = workdir / "sim"
+            sim = subprocess.run(inside + ["sim", "--scenario", scenario_name, "--duration", f"{sc.duration_s:g}",
+                                           "--interface", "udp_multicast", *channels, "--realtime",
+                                           "--rt-priority", str(rt_priority), "--drives-from", ep,
+                                           "--command-limit", f"{command_limit:g}", "--no-plots", "--no-compare",
+                                           "--quiet", "--out", str(out)],
+                                 cwd=root, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                                 timeout=3 * sc.duration_s + 300)
+            if sim.returncode != 0:
+                raise RealtimeError(f"the robot's process failed: {sim.stderr[-2000:]}")
+        finally:
+            ends = []
+            for p in procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+                try:
+                    ends.append(p.communicate(timeout=60))
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    ends.append(p.communicate())
+            if os.environ.get("BSC_DEBUG_CLOSED_LOOP"):
+                for p, (o, e) in zip(procs, ends):
+                    say(f"--- {p.args[6:8]} rc {p.returncode}\n{o[-1500:]}\n{e[-1500:]}")
+    import json
+
+    summary = json.loads((out / "summary.json").read_text())["can"]
+    return Trace.load(out / "truth.npz"), summary
+
+
+def realtime_study(scenario_arg: str, scenario, study: dict, traces: dict, workdir, *, command_limit: float = 1.0,
+                   say=print) -> dict:
+    """The real-time compensated run of ``scenario`` (``scenario_arg``: its name or file, as
+    ``bsc sim --scenario`` takes it) beside a lockstep study's no-friction and open-loop runs (the
+    same deterministic simulations): the same figures, the loop's delays and the pacing. Adds
+    the run's trace to ``traces`` as ``realtime``."""
+    trace, summary = run_realtime(scenario_arg, workdir, duration_s=scenario.duration_s,
+                                  command_limit=command_limit, say=say)
+    ee = {"no_friction": study["ee_rms_error_m"]["no_friction"], "open_loop": study["ee_rms_error_m"]["open_loop"],
+          "compensated": ee_rms(trace)}
+    tq = {"open_loop": study["joint_torque_rms_error_nm"]["open_loop"], "compensated": torque_rms(trace)}
+    out = {"command_limit_fraction": command_limit,
+           "ee_rms_error_m": ee, "joint_torque_rms_error_nm": tq,
+           "thruster_wrench_rms_error": {"open_loop": study["thruster_wrench_rms_error"]["open_loop"],
+                                         "compensated": wrench_rms(trace),
+                                         "note": "thrusters not compensated: the joint loop only"},
+           "ee_friction_error_removed": {k: removed(ee["open_loop"][k], ee["compensated"][k], ee["no_friction"][k])
+                                         for k in ee["open_loop"]},
+           "joint_torque_error_cut": {k: removed(tq["open_loop"][k], tq["compensated"][k]) for k in tq["open_loop"]},
+           "drives": summary.get("drives"), "pacing": summary.get("pacing"),
+           "frames_sent": summary.get("frames_sent")}
+    out["pass"] = all(out[k]["overall"] >= v for k, v in TARGETS.items())
+    traces["realtime"] = trace
+    return out

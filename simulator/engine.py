@@ -144,6 +144,7 @@ class Simulation:
         # latest command given to command_drives() instead of the flight software's output
         self.external_drives = external_drives
         self._drive_cmd: np.ndarray | None = None
+        self._drive_use: np.ndarray | None = None        # joints that take _drive_cmd (None: all)
         self.drive_applied = np.zeros((self.n_steps, r.n_joints)) if external_drives else None
         # raw truth not kept in the trace: force transmitted by each arm's first joint (its frame)
         self._f_joint = np.zeros((self.n_steps, len(r.arms), 6))
@@ -250,7 +251,7 @@ class Simulation:
         tau = self.tau_cmd
         if self.external_drives:
             if self._drive_cmd is not None:
-                tau = self._drive_cmd
+                tau = self._drive_cmd if self._drive_use is None else np.where(self._drive_use, self._drive_cmd, tau)
             self.drive_applied[k] = tau
         try:
             a = dyn.step(self._wrench_chunk[j], tau)
@@ -353,13 +354,15 @@ class Simulation:
         tr.n = self._sensed = k1
         return ft_sat, imu_sat
 
-    def command_drives(self, tau_nm) -> None:
+    def command_drives(self, tau_nm, use=None) -> None:
         """The joint drives' command from now on, (n,) N m in v order, held until the next one
         (``external_drives=True`` only). The flight software still computes its own command
         (``tau_cmd`` in the trace, what the arm bus carries: the desired torque); the drives
-        apply this one instead, saturated at the joints' torque limits as a drive would. Until
-        the first call they apply the flight software's command. The trace's ``tau_act`` is the
-        applied command plus friction; :attr:`drive_applied` holds the applied command per step."""
+        apply this one instead, saturated at the joints' torque limits as a drive would. ``use``
+        (n,) bool: only those joints take it, the others the flight software's command of each
+        step (a drive whose external command is late). Until the first call they all apply the
+        flight software's command. The trace's ``tau_act`` is the applied command plus friction;
+        :attr:`drive_applied` holds the applied command per step."""
         if not self.external_drives:
             raise DriveCommandError("command_drives: this simulation's drives take the flight software's "
                                  "commands (create it with external_drives=True)")
@@ -367,7 +370,12 @@ class Simulation:
         if tau.shape != (self.robot.n_joints,) or not np.all(np.isfinite(tau)):
             raise DriveCommandError(f"command_drives: expected {self.robot.n_joints} finite torques, N m, "
                                  f"got shape {tau.shape}")
+        if use is not None:
+            use = np.asarray(use, dtype=bool)
+            if use.shape != tau.shape:
+                raise DriveCommandError(f"command_drives: use must be {self.robot.n_joints} booleans")
         self._drive_cmd = np.clip(tau, -self.robot.effort_limit, self.robot.effort_limit)
+        self._drive_use = use
 
     # ------------------------------------------------------------------------------------------
     def step(self) -> Readings:

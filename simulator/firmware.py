@@ -505,7 +505,8 @@ COMPUTE_MARGIN_S = 0.0004     # real time: compute one more step only if the nex
 
 
 def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | None = None, realtime: bool = False,
-                 progress: bool = False, on_step: Callable | None = None):
+                 progress: bool = False, on_step: Callable | None = None, lookahead_steps: int = LOOKAHEAD_STEPS,
+                 compute_lead_s: float | None = None):
     """Step ``sim`` to its end and send every frame of every step on its bus; returns the
     truth :class:`~simulator.truth.Trace`.
 
@@ -517,6 +518,12 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
     :data:`LOOKAHEAD_STEPS` ahead of the wire, so one slow step does not delay the sends.
     ``on_step(readings)`` runs after each step's frames went out. Frames still held by a reorder
     fault are sent at the end.
+
+    A closed loop through the robot's buses (drive commands that come back from outside and go
+    into ``sim`` from ``on_step``) needs each step computed just before it is due:
+    ``lookahead_steps=1`` computes one step at a time, and ``compute_lead_s`` waits until the
+    step is that close to its due time before computing it (so that a command arriving in the
+    meantime is in it).
 
     In real time the firmware's :attr:`Firmware.pacing` says how late the steps went out (a
     :class:`Pacing`): a receiver that stamps frames on arrival (SocketCAN, udp_multicast) sees
@@ -552,7 +559,11 @@ def run_on_buses(sim, buses: Mapping[str, can.BusABC], *, firmware: Firmware | N
             # the simulated robot runs ahead of the wire (its controller is inside the
             # simulation): a slow step delays nothing as long as the lookahead lasts; a step is
             # computed only while the next send is at least COMPUTE_MARGIN_S away
-            while (sim.k < sim.n_steps and len(ahead) < LOOKAHEAD_STEPS
+            if compute_lead_s is not None and not ahead and sim.k < sim.n_steps:
+                lead = t0 + sim.k * DT_S - compute_lead_s - time.perf_counter()
+                if lead > 0:
+                    time.sleep(lead)
+            while (sim.k < sim.n_steps and len(ahead) < lookahead_steps
                    and (not ahead or ahead[0][0] - time.perf_counter() > COMPUTE_MARGIN_S)):
                 compute()
         due, batch, r = ahead.popleft()

@@ -61,6 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also close the inner loop (docs/control.md): the scenario without friction, with friction "
                         "open loop, and with friction compensated through the gateway, in lockstep; report.json "
                         "closed_loop and the closed_loop_*.png figures; its targets are judged too")
+    p.add_argument("--realtime", action="store_true",
+                   help="with --closed-loop: also run the compensated case in real time across processes (bsc "
+                        "gateway, bsc control and the robot over udp_multicast in a private network namespace: "
+                        "root and iproute2), reporting the loop's delays (closed_loop.realtime)")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -206,9 +210,12 @@ def run(args: argparse.Namespace) -> int:
     plots.trajectories(trace, args.out / "trajectories.png")
     timings["outputs_s"] = round(time.perf_counter() - t, 2)
     closed_missed: list[str] = []
+    if args.realtime and not args.closed_loop:
+        raise UserError("--realtime runs the closed loop in real time: give --closed-loop too")
     if args.closed_loop:
         t = time.perf_counter()
-        report["closed_loop"], closed_missed = _closed_loop(sc, args.out, progress=not args.quiet)
+        report["closed_loop"], closed_missed = _closed_loop(sc, args.out, progress=not args.quiet,
+                                                            realtime=args.scenario if args.realtime else None)
         timings["closed_loop_s"] = round(time.perf_counter() - t, 2)
     report["wall_s"] = round(time.perf_counter() - t0, 1)
     report["timings"] = timings
@@ -243,21 +250,30 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _closed_loop(sc, out: Path, progress: bool) -> tuple[dict, list[str]]:
+def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None) -> tuple[dict, list[str]]:
     """The closed-loop study (harness.closed_loop) on the scenario as it is, then with the outer
     loop's commands limited to HEADROOM of the torque limits (the drives keep room to cancel
-    the friction); figures for both. Returns (report.json's closed_loop block, targets missed by
-    the first)."""
+    the friction); figures for both. ``realtime``: the scenario argument, to also run each
+    compensated case in real time across processes. Returns (report.json's closed_loop block,
+    targets missed by the first, lockstep)."""
+    import tempfile
+
     from harness import closed_loop
 
-    study, traces = closed_loop.closed_loop_study(sc, progress=progress)
-    closed_loop.plot_ee_error(traces, study, out / "closed_loop_ee_error.png", f"{sc.name}, as configured")
-    closed_loop.plot_joint_torques(traces, study, out / "closed_loop_joint_torques.png", f"{sc.name}, as configured")
-    del traces
-    room, traces = closed_loop.closed_loop_study(sc, command_limit=closed_loop.HEADROOM, progress=progress)
-    what = f"{sc.name}, outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits"
-    closed_loop.plot_ee_error(traces, room, out / "closed_loop_headroom_ee_error.png", what)
-    closed_loop.plot_joint_torques(traces, room, out / "closed_loop_headroom_joint_torques.png", what)
+    cases = (("as configured", 1.0, "closed_loop"),
+             (f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits", closed_loop.HEADROOM,
+              "closed_loop_headroom"))
+    found = []
+    for what, limit, name in cases:
+        study, traces = closed_loop.closed_loop_study(sc, command_limit=limit, progress=progress)
+        if realtime is not None:
+            with tempfile.TemporaryDirectory(prefix="bsc-closed-loop-") as tmp:
+                study["realtime"] = closed_loop.realtime_study(realtime, sc, study, traces, tmp, command_limit=limit)
+        closed_loop.plot_ee_error(traces, study, out / f"{name}_ee_error.png", f"{sc.name}, {what}")
+        closed_loop.plot_joint_torques(traces, study, out / f"{name}_joint_torques.png", f"{sc.name}, {what}")
+        found.append(study)
+        del traces
+    study, room = found
     study["headroom"] = room
     return study, closed_loop.missed(study)
 

@@ -58,6 +58,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from gateway.commands import RT_PRIORITY_HELP
 
     can_g.add_argument("--rt-priority", type=int, default=0, metavar="N", help="with --realtime: " + RT_PRIORITY_HELP)
+    cl_g = p.add_argument_group("closed loop (docs/control.md)")
+    cl_g.add_argument("--drives-from", metavar="ENDPOINT",
+                      help="with --realtime: the joint drives apply the commands of bsc/<robot>/commands/drives/** "
+                           "(bsc control) from the zenoh router at ENDPOINT instead of the flight software's; "
+                           "waits until bsc control is connected")
+    cl_g.add_argument("--drive-max-age", type=float, default=0.005, metavar="S",
+                      help="with --drives-from: a drive command older than this (behind the desired torques it "
+                           "corrects) is not applied; that arm's drives take the flight software's command "
+                           "(default 0.005 s)")
+    cl_g.add_argument("--command-limit", type=float, default=1.0, metavar="FRACTION",
+                      help="the flight software saturates its joint commands at this fraction of the torque "
+                           "limits (default 1; less leaves the drives headroom for an inner loop)")
+    cl_g.add_argument("--compute-lead", type=float, default=0.0003, metavar="S",
+                      help="with --drives-from: compute each step this long before it is due (default 0.0003 s), "
+                           "so that a drive command arriving until then is in it")
     f_g = p.add_argument_group("fault injection (docs/firmware.md; rates are per sample, exclusive)")
     for name, what in (("drop", "a frame is not sent"), ("duplicate", "a frame is sent twice"),
                        ("reorder", "a sample is sent after the device's next one"),
@@ -132,6 +147,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--channel, --fd, --realtime, the bus options and the fault options need --interface")
     if args.rt_priority and not args.realtime:
         raise UserError("--rt-priority needs --realtime")
+    if args.drives_from and not args.realtime:
+        raise UserError("--drives-from needs --realtime (and --interface): the loop runs on the wall clock")
+    if not 0.0 < args.command_limit <= 1.0:
+        raise UserError(f"--command-limit must be a fraction in (0, 1], got {args.command_limit:g}")
+    if not args.drive_max_age > 0:
+        raise UserError(f"--drive-max-age must be positive, got {args.drive_max_age:g}")
+    if not 0.0 <= args.compute_lead < 0.001:
+        raise UserError(f"--compute-lead must be in [0, 0.001) s, got {args.compute_lead:g}")
     from gateway.commands import check_rt_priority
 
     check_rt_priority(args.rt_priority)
@@ -139,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
-    sim = Simulation(sc)
+    sim = Simulation(sc, external_drives=bool(args.drives_from), command_limit=args.command_limit)
     can_summary = None
     if args.interface is None:
         trace = sim.run(progress=not args.quiet)
@@ -203,14 +226,42 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
         from gateway.commands import set_rt_priority
 
         set_rt_priority(args.rt_priority)
-        trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=args.realtime, progress=not args.quiet)
+        drives = None
+        if args.drives_from:
+            trace, drives = _run_closed_loop(args, sim, buses, fw)
+        else:
+            trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=args.realtime, progress=not args.quiet)
     totals = {k: sum(fw.counts[d][k] for d in fw.devices) for k in firmware.COUNT_KEYS if k != "samples"}
     return trace, {"interface": args.interface, "channels": chans, "fd": args.fd, "realtime": args.realtime,
                    "frames_sent": dict(fw.frames_sent), "faults_injected": totals,
                    "pacing": fw.pacing.as_dict() if fw.pacing is not None else None,
                    "faults_per_device": {d: {k: v for k, v in fw.counts[d].items() if v and k != "samples"}
                                          for d in fw.devices
-                                         if any(v for k, v in fw.counts[d].items() if k != "samples")}}
+                                         if any(v for k, v in fw.counts[d].items() if k != "samples")},
+                   **({"drives": drives} if drives is not None else {})}
+
+
+def _run_closed_loop(args: argparse.Namespace, sim, buses, fw):
+    """Real time with the drives on zenoh (harness.closed_loop.DriveInbox): starts once bsc control
+    subscribes to the efforts, computes each step just before it is due."""
+    import zenoh
+
+    from gateway import codec, keys
+    from gateway.zenoh_config import make_config
+    from harness.closed_loop import DriveInbox
+    from simulator import firmware
+
+    with zenoh.open(make_config(mode="client", connect=[args.drives_from])) as session:
+        inbox = DriveInbox(session, sim, max_age_s=args.drive_max_age)
+        try:
+            first = keys.joint_efforts(sim.robot.name, sim.robot.arms[0].name)
+            if not codec.wait_for_subscriber(session, first, timeout_s=60.0):
+                raise UserError(f"no bsc control subscribed to {first} at {args.drives_from} within 60 s")
+            trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=True, progress=not args.quiet,
+                                          on_step=inbox.apply, lookahead_steps=1, compute_lead_s=args.compute_lead)
+        finally:
+            inbox.close()
+    return trace, inbox.summary()
 
 
 def _run_series(args: argparse.Namespace) -> int:

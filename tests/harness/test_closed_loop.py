@@ -91,3 +91,44 @@ def test_a_silent_sensor_opens_the_loops_within_one_step_and_they_resume_when_es
     k = np.flatnonzero(during)
     np.testing.assert_allclose(info["applied"][k], tr.arrays["tau_cmd"][k - 1], rtol=0, atol=0.025 + 1e-9)
     assert closed[t > 0.85].all()
+
+
+def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(capture):
+    import zenoh
+
+    from gateway import codec
+    from gateway.control.messages import DriveCommand, drive_key, encode_drive_command
+    from gateway.zenoh_config import make_config
+    from support import free_port, subscribed, wait_until
+
+    sim = Simulation(capture.replace(duration_s=0.1), external_drives=True)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    t = 1_000_000_000
+    with zenoh.open(make_config(mode="router", listen=[ep])) as a, \
+            zenoh.open(make_config(mode="client", connect=[ep])) as b:
+        inbox = closed_loop.DriveInbox(b, sim, max_age_s=0.005)
+        pub = codec.declare_publisher(a, drive_key("paper_robot", "arm0"))
+        try:
+            subscribed(a, drive_key("paper_robot", "arm0"))
+            codec.put(pub, encode_drive_command(DriveCommand("arm0", t, ("arm0/j1", "arm0/j2"), (111.0, -22.0),
+                                                             (100.0, -20.0), (11.0, -2.0), True)))
+            wait_until(lambda: inbox.received == 1, "the drive command")
+            sim.step()
+            inbox.apply(now_ns=t + 4_000_000)                  # 4 ms old: applied to arm0, arm1 on its own
+            sim.step()
+            np.testing.assert_array_equal(sim.drive_applied[1, :2], [111.0, -22.0])
+            np.testing.assert_array_equal(sim.drive_applied[1, 2:], sim.trace.arrays["tau_cmd"][1, 2:])
+            inbox.apply(now_ns=t + 6_000_000)                  # 6 ms old: too late, the flight software's
+            sim.step()
+            np.testing.assert_array_equal(sim.drive_applied[2], sim.trace.arrays["tau_cmd"][2])
+            # an older command arriving after it is ignored; a payload that is no command is counted
+            codec.put(pub, encode_drive_command(DriveCommand("arm0", t - 1, ("arm0/j1", "arm0/j2"), (0.0, 0.0),
+                                                             (0.0, 0.0), (0.0, 0.0), False)))
+            codec.put(pub, b"{}")
+            wait_until(lambda: inbox.received + inbox.rejected >= 3, "the late and the bad payloads")
+            assert inbox.latest["arm0"].t_ns == t and inbox.rejected == 1
+            s = inbox.summary()
+            assert s["arm_steps_applied"] == {"closed": 1, "open": 0, "late_or_none": 3}
+        finally:
+            pub.undeclare()
+            inbox.close()
