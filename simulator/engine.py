@@ -5,6 +5,11 @@ sensors and the flight computer put on the buses during that millisecond); ``run
 the end and returns the :class:`~simulator.truth.Trace`. The sensor firmware
 (``simulator.firmware``) consumes ``Readings``.
 
+Drive commands from outside (an inner loop closed through the buses, docs/control.md):
+``Simulation(..., external_drives=True)`` and :meth:`Simulation.command_drives`; the flight
+software stays the outer loop (its command is the trace's ``tau_cmd``, the desired torque) and
+the drives apply what they were last given.
+
 How the loop is organised (for speed; the result does not depend on it):
 
 - each step (``_advance``) runs only what the closed loop needs: the encoders and the joint
