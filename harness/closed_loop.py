@@ -237,8 +237,10 @@ def plot_ee_error(traces: dict, study: dict, path, title: str):
     for case, tr in traces.items():
         label, color, ls = CASE_STYLE[case]
         e = np.linalg.norm(tr["ee"] - tr["ee_des"], axis=2)
+        # the no-friction curve on top, dotted: where compensation reaches it both stay visible
+        top = case == "no_friction"
         for k, arm in enumerate(arms):
-            axs[k, 0].plot(tr["t_s"], e[:, k], color=color, ls=ls, lw=1.4,
+            axs[k, 0].plot(tr["t_s"], e[:, k], color=color, ls=ls, lw=2.2 if top else 1.4, zorder=4 if top else 2,
                            label=f"{label} (RMS {ee[case]['overall']:.3f} m)" if k == 0 else None)
     for k, arm in enumerate(arms):
         ax = axs[k, 0]
@@ -391,12 +393,13 @@ class RealtimeError(RuntimeError):
 
 
 def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None, command_limit: float = 1.0,
-                 rt_priority: int = 10, say=print):
+                 rt_priority: int = 10, service_priority: int = 5, say=print):
     """The closed loop in real time, across processes: ``bsc gateway`` (udp_multicast, the zenoh
     router), ``bsc control`` and ``bsc sim --realtime --drives-from`` (the robot, its drives on
     zenoh), each its own process, CAN over udp_multicast in a private network namespace (root and
-    iproute2, as the capacity benchmark). Returns (the compensated run's trace, the robot side's
-    summary: frames, pacing, and the drive commands' delays)."""
+    iproute2, as the capacity benchmark); the robot at SCHED_FIFO ``rt_priority``, the gateway and
+    the compensator at ``service_priority`` (0: normal scheduling). Returns (the compensated
+    run's trace, the robot side's summary: frames, pacing, and the drive commands' delays)."""
     import os
     import signal
     import subprocess
@@ -429,12 +432,16 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
         if ns is None:
             raise RealtimeError("needs root and iproute2: CAN goes over udp_multicast in a private network namespace")
         inside = ["ip", "netns", "exec", ns, sys.executable, "-m", "gateway.cli"]
+        # the gateway and the compensator at real-time priority too (below the robot's), as on a
+        # robot's computer: other load on the host must not hold the loop back
+        served = ["ip", "netns", "exec", ns, *(["chrt", "-f", str(service_priority)] if service_priority else []),
+                  sys.executable, "-m", "gateway.cli"]
         ep = f"tcp/127.0.0.1:{free_port()}"
         run_for = str(sc.duration_s + 300)
         procs = []
 
         def start(args, what, ready, stream):
-            p = subprocess.Popen(inside + args, cwd=root, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+            p = subprocess.Popen(served + args, cwd=root, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True)
             procs.append(p)
             line = getattr(p, stream).readline()

@@ -132,3 +132,26 @@ def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(c
         finally:
             pub.undeclare()
             inbox.close()
+
+
+def test_bsc_demo_closed_loop_writes_the_report_keys_and_figures(tmp_path, capsys):
+    import json
+
+    from gateway.cli import main
+
+    out = tmp_path / "d"
+    run = ["demo", "--duration", "0.3", "--no-sweep", "--no-record", "--quiet", "--out", str(out)]
+    assert main(run + ["--closed-loop", "--report-only"]) == 0
+    printed = capsys.readouterr().out
+    assert "closed loop, the scenario as it is:" in printed and "outer loop limited to 70 %" in printed
+    report = json.loads((out / "report.json").read_text())
+    for block in (report["closed_loop"], report["closed_loop"]["headroom"]):
+        for case in ("no_friction", "open_loop", "compensated"):
+            assert set(block["ee_rms_error_m"][case]) == {"arm0", "arm1", "overall"}
+        for key in ("joint_torque_rms_error_nm", "thruster_wrench_rms_error"):
+            assert set(block[key]) >= {"open_loop", "compensated"}
+    for name in ("closed_loop_ee_error.png", "closed_loop_joint_torques.png", "closed_loop_headroom_ee_error.png",
+                 "closed_loop_headroom_joint_torques.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    assert main(run + ["--realtime"]) == 2
+    assert "give --closed-loop too" in capsys.readouterr().err
