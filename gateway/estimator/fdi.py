@@ -50,9 +50,9 @@ _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 RULE = "thruster-fault"                # the rule name of its alerts (live and bsc analyze)
 OPEN, LOSS = 0, 1                      # hypothesis families
 FAMILIES = ("open", "loss")
-STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS = range(4)
-TYPES = ("stuck open", "leak", "stuck closed", "partial loss")
-TYPE_KEYS = ("stuck_open", "leak", "stuck_closed", "partial_loss")
+STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS, CLEARED = range(5)
+TYPES = ("stuck open", "leak", "stuck closed", "partial loss", "cleared")
+TYPE_KEYS = ("stuck_open", "leak", "stuck_closed", "partial_loss", "cleared")
 OPEN_THETA = 0.5                       # a leak of at least this fraction of nominal thrust: stuck open
 CLOSED_THETA = 0.75                    # a loss of at least this fraction: stuck closed
 SHORT, LONG = 0, 1
@@ -64,14 +64,18 @@ _NCFG = 15
 # its state (float64 array): a header; per hypothesis the short window's A and B, the CUSUM, its
 # A and B since it last left zero, and whether it was raised; the faults (:data:`_NF` numbers
 # each); the alarm rows (:data:`EVENT_FIELDS`)
-_S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_HDR = 0, 1, 2, 4, 6, 7, 8, 9, 10
+_S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_CLEARED, _S_HDR = (
+    0, 1, 2, 4, 6, 7, 8, 9, 10, 11)
 _A, _B, _CU, _CA, _CB, _RAISED = range(6)        # blocks of h = 2 n numbers after the header
 MAX_FAULTS = 4
 # a fault: its hypothesis, A and B since it was raised, the size that raised it, updates since,
-# when it was detected (ns), the detector (SHORT, LONG), its statistic, and its stage
-_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE = range(9)
-_NF = 9
-CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER = 0, 1, 2, 3
+# when it was detected (ns), the detector (SHORT, LONG), its statistic, its stage, its type once
+# confirmed; for a stuck valve in the filter the recovery test's A and B (short window), its run
+# and when the run began (ns)
+(_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
+ _F_RT) = range(14)
+_NF = 14
+CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE = 0, 1, 2, 3, 4
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
 EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
 _NEV = len(EVENT_FIELDS)
@@ -158,10 +162,12 @@ def _whiten(L: F64, m: int, v: F64, out: F64) -> None:
 
 
 @_jit
-def _signature(Wnom: F64, Ha: F64, tap: F64, n: int, m: int, j: int, fam: int, g: F64) -> None:
-    """The innovation a fault of family ``fam`` of thruster ``j`` of size 1 would cause (m,)."""
-    vbar = tap[tk.TAP_VALVES + j]
-    vt = tap[tk.TAP_VALVES + n + j]
+def _signature(Wnom: F64, Ha: F64, tap: F64, n: int, m: int, j: int, fam: int, g: F64, cmd: bool = False) -> None:
+    """The innovation a fault of family ``fam`` of thruster ``j`` of size 1 would cause (m,), the
+    valve as the filter takes it, or as commanded (``cmd``)."""
+    off = tk.TAP_VALVES + (2 * n if cmd else 0)
+    vbar = tap[off + j]
+    vt = tap[off + n + j]
     ca = (1.0 - vbar) if fam == OPEN else -vbar
     cg = (1.0 - vt) if fam == OPEN else -vt
     for r in range(3):
@@ -171,6 +177,21 @@ def _signature(Wnom: F64, Ha: F64, tap: F64, n: int, m: int, j: int, fam: int, g
         g[r] = ca * acc
     for r in range(3):
         g[3 + r] = cg * Wnom[j, 3 + r] if m == 6 else 0.0
+
+
+@_jit
+def _project(Wnom: F64, Ha: F64, tap: F64, L: F64, n: int, m: int, j: int, fam: int, ew: F64, g: F64, gw: F64,
+             cmd: bool = False) -> tuple[float, float]:
+    """A hypothesis' whitened signature into ``gw`` (:func:`_signature`, ``L^-1 g``) and its two
+    sums with the whitened innovation ``ew``: ``(g^T S^-1 g, g^T S^-1 e)``."""
+    _signature(Wnom, Ha, tap, n, m, j, fam, g, cmd)
+    _whiten(L, m, g, gw)
+    a = 0.0
+    b = 0.0
+    for r in range(m):
+        a += gw[r] * gw[r]
+        b += gw[r] * ew[r]
+    return a, b
 
 
 @_jit
@@ -232,7 +253,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     those updates alone. Until the filter models it, its signature times its size is taken out
     of the innovation the other hypotheses see."""
     if tap[tk.TAP_APPLIED] == 0.0:
-        return st[_S_LEARN]
+        return float(st[_S_LEARN])
     n = int(cfg[_C_N])
     h_all = 2 * n
     fbase = _S_HDR + 6 * h_all
@@ -241,7 +262,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     S = tap[tk.TAP_S:tk.TAP_S + 36].reshape((6, 6))      # row-major, stride 6
     L = np.zeros((6, 6))
     if not tk.cholesky(S, m, L):
-        return st[_S_LEARN]
+        return float(st[_S_LEARN])
     e = np.zeros(6)
     for r in range(m):
         e[r] = tap[tk.TAP_E + r]
@@ -254,21 +275,15 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     confirming = False
     for f in range(nf):
         o = fbase + _NF * f
-        if st[o + _F_STAGE] == IN_FILTER or st[o + _F_STAGE] == TO_FILTER:
+        if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR:
             continue
         hyp = int(st[o + _F_HYP])
-        _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
-        _whiten(L, m, g, gw)
-        a = 0.0
-        b = 0.0
-        for r in range(m):
-            a += gw[r] * gw[r]
-            b += gw[r] * ew[r]
+        a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
         st[o + _F_A] += a
         st[o + _F_B] += b
     for f in range(nf):
         o = fbase + _NF * f
-        if st[o + _F_STAGE] == IN_FILTER or st[o + _F_STAGE] == TO_FILTER:
+        if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR:
             continue
         hyp = int(st[o + _F_HYP])
         th = _theta(st, o)
@@ -292,6 +307,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             confirming = True
             continue
         typ = _fault_type(hyp % 2, theta)
+        st[o + _F_TYPE] = typ
         ne = int(st[_S_EVENTS])
         if ev0 + _NEV * (ne + 1) <= st.shape[0]:
             q = ev0 + _NEV * ne
@@ -318,19 +334,63 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         for w in range(2):
             st[_S_BEST + w] = -1.0
             st[_S_RUN + w] = 0.0
+    lam = cfg[_C_LAM]
+    # stuck valves in the filter: has the valve come back? Its own signature with the opposite
+    # sign (a valve modelled open that gives no thrust while commanded closed; one modelled
+    # closed that thrusts while commanded open), the short detector's window, alarm and hold
+    recovering = False
+    for f in range(nf):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] != IN_FILTER or (st[o + _F_TYPE] != STUCK_OPEN and st[o + _F_TYPE] != STUCK_CLOSED):
+            continue
+        hyp = int(st[o + _F_HYP])
+        j = hyp // 2
+        a, b = _project(Wnom, Ha, tap, L, n, m, j, hyp % 2, ew, g, gw, True)
+        st[o + _F_RA] = lam * st[o + _F_RA] + a
+        st[o + _F_RB] = lam * st[o + _F_RB] + b
+        A = st[o + _F_RA]
+        B = st[o + _F_RB]
+        T = B * B / A if A > 0.0 and B < 0.0 else 0.0
+        back = -B / A if T > 0.0 else 0.0
+        if T > cfg[_C_SUSPECT]:
+            recovering = True
+        if T <= cfg[_C_H] or back < cfg[_C_THETA_MIN]:
+            st[o + _F_RRUN] = 0.0
+            continue
+        if st[o + _F_RRUN] == 0.0:
+            st[o + _F_RT] = float(t_ns)
+        st[o + _F_RRUN] += 1.0
+        if st[o + _F_RRUN] < cfg[_C_HOLD]:
+            continue
+        ne = int(st[_S_EVENTS])
+        if ev0 + _NEV * (ne + 1) <= st.shape[0]:
+            q = ev0 + _NEV * ne
+            st[q] = float(t_ns)
+            st[q + 1] = j
+            st[q + 2] = CLEARED
+            st[q + 3] = back
+            st[q + 4] = T
+            st[q + 5] = SHORT
+            st[q + 6] = st[o + _F_RT]
+            st[_S_EVENTS] = ne + 1
+        bit = 1 << j
+        st[_S_OPEN] = float(int(st[_S_OPEN]) & ~bit)
+        st[_S_CLOSED] = float(int(st[_S_CLOSED]) & ~bit)
+        st[o + _F_STAGE] = CLEARED_STAGE
+        st[_S_CLEARED] += 1.0
+        st[_S_HDR + _RAISED * h_all + hyp] = 0.0       # it may fail again
+        for k in range(5 * h_all):                      # the detectors restart on the valve as commanded
+            st[_S_HDR + k] = 0.0
+        for w in range(2):
+            st[_S_BEST + w] = -1.0
+            st[_S_RUN + w] = 0.0
+        recovering = True
     st[_S_UPDATES] += 1.0
     upd = st[_S_UPDATES]
-    lam = cfg[_C_LAM]
     th1 = cfg[_C_THETA1]
     for j in range(n):
         for fam in range(2):
-            _signature(Wnom, Ha, tap, n, m, j, fam, g)
-            _whiten(L, m, g, gw)
-            a = 0.0
-            b = 0.0
-            for r in range(m):
-                a += gw[r] * gw[r]
-                b += gw[r] * ew[r]
+            a, b = _project(Wnom, Ha, tap, L, n, m, j, fam, ew, g, gw)
             k = 2 * j + fam
             st[_S_HDR + _A * h_all + k] = lam * st[_S_HDR + _A * h_all + k] + a
             st[_S_HDR + _B * h_all + k] = lam * st[_S_HDR + _B * h_all + k] + b
@@ -346,7 +406,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     if upd <= cfg[_C_WARMUP]:
         st[_S_LEARN] = math.inf
         return math.inf
-    suspect = confirming
+    suspect = confirming or recovering
     gross = False
     for w in range(2):
         best, best_t = _best(st, h_all, w)
@@ -380,6 +440,11 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_WIN] = w
         st[o + _F_STAT] = best_t
         st[o + _F_STAGE] = CONFIRMING
+        st[o + _F_TYPE] = -1.0
+        st[o + _F_RA] = 0.0
+        st[o + _F_RB] = 0.0
+        st[o + _F_RRUN] = 0.0
+        st[o + _F_RT] = 0.0
         nf += 1
         st[_S_NFAULTS] = nf
         confirming = True
@@ -432,16 +497,19 @@ def learning(st: F64) -> float:
 
 @_jit
 def unresolved(st: F64) -> bool:
-    """A thruster fault has been raised (being confirmed, or confirmed): the thruster wrench
-    is not to be trusted as healthy."""
-    return bool(st[_S_NFAULTS] > 0.0)
+    """A thruster fault has been raised (being confirmed, or confirmed) and not cleared: the
+    thruster wrench is not to be trusted as healthy."""
+    return bool(st[_S_NFAULTS] > st[_S_CLEARED])
 
 
 @_jit
 def valve_mask(st: F64, mask: int | np.int64) -> np.int64:
-    """The valves the filter should take as open in a step commanded ``mask``: the confirmed
-    stuck-open ones added, the stuck-closed ones removed."""
-    return (mask | np.int64(st[_S_OPEN])) & ~np.int64(st[_S_CLOSED])
+    """The valves the filter should take as open in a step commanded ``mask``, bits 0..n-1: the
+    confirmed stuck-open ones added, the stuck-closed ones removed; and ``mask`` itself from bit
+    :data:`.thruster_kernel.COMMANDED` up, which the filter ignores and its innovation tap reports
+    (the recovery test of a stuck valve needs the command)."""
+    cmd = np.int64(mask) & ((np.int64(1) << tk.COMMANDED) - 1)
+    return ((cmd | np.int64(st[_S_OPEN])) & ~np.int64(st[_S_CLOSED])) | (cmd << tk.COMMANDED)
 
 
 def events(st: np.ndarray, n: int) -> np.ndarray:
@@ -452,11 +520,14 @@ def events(st: np.ndarray, n: int) -> np.ndarray:
 
 
 def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
-    """The accommodated faults: ``(thruster, family, size)`` (size: fraction of nominal thrust)."""
+    """The faults raised and not cleared: ``(thruster, family, size)`` (size: fraction of nominal
+    thrust)."""
     o = _offsets(n)[1]
     out = []
     for f in range(int(st[_S_NFAULTS])):
         r = st[o + _NF * f:o + _NF * (f + 1)]
+        if r[_F_STAGE] == CLEARED_STAGE:
+            continue
         hyp, A, B = r[_F_HYP], r[_F_A], r[_F_B]
         out.append((int(hyp) // 2, FAMILIES[int(hyp) % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
     return out

@@ -313,20 +313,26 @@ def imu(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hi
 
 # the innovation tap of imu_tap (float64 row): applied, rows, e = y - H x (6), S = H P H^T + R
 # (6 x 6, row-major, the first ``rows`` rows and columns), then per valve its open fraction in the
-# accelerometer rows (vbar, n) and its weight in the gyro-difference rows (vt, n)
+# accelerometer rows (vbar, n) and its weight in the gyro-difference rows (vt, n), then the same
+# two of the valves as commanded (the bits from COMMANDED up of the pushed masks; n each)
 TAP_APPLIED, TAP_ROWS, TAP_E, TAP_S, TAP_VALVES = 0, 1, 2, 8, 44
+COMMANDED = 32
+"""Bits ``COMMANDED + i`` of a pushed valve mask: valve i as commanded, when the caller models
+some valves otherwise in bits 0..n-1 (the fault detector's stuck valves, :func:`.fdi.valve_mask`).
+The filter reads only bits 0..n-1; the tap reports both."""
 
 
 def tap_size(n: int) -> int:
     """Length of the innovation tap of :func:`imu_tap` for ``n`` valves."""
-    return TAP_VALVES + 2 * n
+    return TAP_VALVES + 4 * n
 
 
 @_jit
 def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt: F64, nn: float, vt: F64,
-         tap: F64) -> None:
+         ccnt: F64, cvt: F64, tap: F64) -> None:
     """The innovation of an update before it is applied: ``e = y - H x`` and its covariance
-    ``S = H P H^T + R`` (P after the random walk), with the valve fractions that make H."""
+    ``S = H P H^T + R`` (P after the random walk), with the valve fractions that make H and the
+    same of the valves as commanded (``ccnt``, ``cvt``)."""
     n = (x.shape[0] - 6) // 6
     tap[TAP_APPLIED] = 1.0
     tap[TAP_ROWS] = m
@@ -351,6 +357,8 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
     for i in range(n):
         tap[TAP_VALVES + i] = cnt[i] / nn
         tap[TAP_VALVES + n + i] = vt[i] if m == 6 else 0.0
+        tap[TAP_VALVES + 2 * n + i] = ccnt[i] / nn
+        tap[TAP_VALVES + 3 * n + i] = cvt[i] if m == 6 else 0.0
 
 
 @_jit
@@ -403,6 +411,8 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     # accelerometer: known = f_arm / m + (I^-1 (tau_arm - w x I w)) x r + w x (w x r), mean over I_k
     s0 = s1 = s2 = 0.0
     cnt = np.zeros(n)
+    ccnt = np.zeros(n)                 # as commanded (the tap only)
+    cvt = np.zeros(n)
     support = 0
     for u in range(nn):
         e = cur[u]
@@ -422,6 +432,8 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
         for i in range(n):
             if (mask >> i) & 1:
                 cnt[i] += 1.0
+            if want and (mask >> (COMMANDED + i)) & 1:
+                ccnt[i] += 1.0
     y[0], y[1], y[2] = a0 - s0 / nn, a1 - s1 / nn, a2 - s2 / nn
     Ha = cst[_HA:_HA + 18]
     for r in range(3):
@@ -464,6 +476,8 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
                 for i in range(n):
                     if (mask >> i) & 1:
                         vt[i] += cu
+                    if want and (mask >> (COMMANDED + i)) & 1:
+                        cvt[i] += cu
             j0, j1, j2 = _mv3(Is, e0, e1, e2)
             y[3], y[4], y[5] = j0 / T - b0, j1 / T - b1, j2 / T - b2
             for r in range(3):
@@ -486,7 +500,7 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     ist[_HAVE_LAST] = 1
     ist[_LAST_NS] = t_ns
     if want:
-        _tap(x, P, m, y, hc, hv, hn, R, cnt, float(nn), vt, tap)
+        _tap(x, P, m, y, hc, hv, hn, R, cnt, float(nn), vt, ccnt, cvt, tap)
     if not learn > 0.0:
         return True
     support &= (np.int64(1) << n) - 1

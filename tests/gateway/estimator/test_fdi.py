@@ -32,9 +32,9 @@ def stream(model, layout, *, steps, seed, fault=None):
     """Events as the estimator feeds its filter (a STEP per 1 kHz step, an IMU sample every
     second step) and the truth: each valve's wrench ``W`` (off nominal by a few %), valves
     pulsing (~9 % duty each), arm reactions, Euler-integrated rates, IMU interval means + the
-    settings' noise. ``fault``: ``(thruster, kind, onset step, factor)``, kind ``stuck_open``
-    (the valve thrusts whatever its command), ``stuck_closed`` (never), ``loss`` (its wrench
-    times ``factor``); the commands stay what the flight software asked."""
+    settings' noise. ``fault``: ``(thruster, kind, onset step, factor[, end step])``, kind
+    ``stuck_open`` (the valve thrusts whatever its command), ``stuck_closed`` (never), ``loss``
+    (its wrench times ``factor``); the commands stay what the flight software asked."""
     rng = np.random.default_rng(seed)
     n = layout.n
     Is, Is_inv, m, r, R = model.inertia_s, np.linalg.inv(model.inertia_s), model.mass_s, model.r_imu, model.R_imu
@@ -55,8 +55,8 @@ def stream(model, layout, *, steps, seed, fault=None):
         on = np.where(on, rng.random(n) > 0.2, rng.random(n) < 0.02)
         act = on.astype(float)
         Wt = W
-        if fault is not None and s >= fault[2]:
-            j, kind, _, factor = fault
+        if fault is not None and fault[2] <= s < (fault[4] if len(fault) > 4 else steps + 1):
+            j, kind, _, factor = fault[:4]
             if kind == "stuck_open":
                 act[j] = 1.0
             elif kind == "stuck_closed":
@@ -178,5 +178,29 @@ def test_fault_named_with_its_size(paper, thruster, kind, factor, want):
     assert len(events) == 1, [fdi.TYPES[int(e[2])] + f" of {int(e[1])}" for e in events[1:]]
     if kind != "loss":                    # the stuck valve is now the filter's: the valve mask says so
         bit = 1 << thruster
-        assert fdi.valve_mask(st, 0) == (bit if kind == "stuck_open" else 0)
-        assert fdi.valve_mask(st, bit) == (bit if kind == "stuck_open" else 0)
+        low = (1 << tk.COMMANDED) - 1                 # the filter's bits; the command above them
+        assert fdi.valve_mask(st, 0) & low == (bit if kind == "stuck_open" else 0)
+        assert fdi.valve_mask(st, bit) & low == (bit if kind == "stuck_open" else 0)
+        assert fdi.valve_mask(st, bit) >> tk.COMMANDED == bit
+
+
+@pytest.mark.parametrize("thruster, kind, want", [(5, "stuck_open", fdi.STUCK_OPEN),
+                                                   (2, "stuck_closed", fdi.STUCK_CLOSED)])
+def test_a_stuck_valve_that_comes_back_is_cleared(paper, thruster, kind, want):
+    model, layout = paper
+    onset, end = 4000, 7000
+    ev, _ = stream(model, layout, steps=10000, seed=30 + thruster, fault=(thruster, kind, onset, 1.0, end))
+    events, _, kf, st = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(thruster, want), (thruster, fdi.CLEARED)]
+    t_clear, theta = events[1][0], events[1][3]
+    assert 0 < (t_clear - end * STEP_NS) / 1e9 <= 0.5 and 0.5 <= theta <= 1.1     # the window's size, diluted
+    bit = 1 << thruster
+    assert fdi.valve_mask(st, 0) == 0 and fdi.valve_mask(st, bit) == bit | (bit << tk.COMMANDED)   # as commanded
+    assert not fdi.unresolved(st) and fdi.faults(st, layout.n) == []
+
+
+def test_a_stuck_valve_that_stays_is_not_cleared(paper):
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=12000, seed=35, fault=(5, "stuck_open", 4000, 1.0))
+    events, _, _, st = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(5, fdi.STUCK_OPEN)] and fdi.unresolved(st)
