@@ -106,6 +106,7 @@ class Verdict:
     # estimator published (both model the fault once it is confirmed)
     nrmse_modelled: float = float("nan")
     nrmse_published: float = float("nan")
+    nrmse_axis: str = ""           # the published wrench's worst axis and its peak, e.g. "fz (peak 13.7)"
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -153,21 +154,25 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
             v.named = True
             v.delay_s = a.t_ns / 1e9 - case.onset_s
             v.theta = a.theta
-            v.nrmse_modelled = _nrmse(res.valve_t_ns, res.wrench, tr["thr_act"], a.t_ns)
-            v.nrmse_published = _nrmse(res.live_t_ns, res.live_wrench, tr["thr_act"], a.t_ns)
+            v.nrmse_modelled = _nrmse(res.valve_t_ns, res.wrench, tr["thr_act"], a.t_ns)[0]
+            v.nrmse_published, axis, peak = _nrmse(res.live_t_ns, res.live_wrench, tr["thr_act"], a.t_ns)
+            v.nrmse_axis = f"{AXES[axis]} (peak {peak:.1f})" if axis >= 0 else ""
         elif not (a.thruster == j and a.fault == want):
             v.false_alarms += 1
     return v
 
 
-def _nrmse(t_ns, wrench, act, from_ns: int, min_peak: float = 10.0) -> float:
+AXES = ("fx", "fy", "fz", "mx", "my", "mz")
+
+
+def _nrmse(t_ns, wrench, act, from_ns: int, min_peak: float = 10.0) -> tuple[float, int, float]:
     """Band-limited (20 Hz) NRMSE of a wrench estimate (at ``t_ns``, 1 kHz steps of the truth)
     against the truth ``act`` after ``from_ns`` (an alarm: its own epoch was published before the
     IMU update that raised it) to the end: the worst axis whose peak is at least ``min_peak``
-    (N, N m). Steps without an estimate hold the previous one. Only that segment is band-limited:
-    filtered over the whole session, the zero-phase filter carried the unmodelled fault before
-    the alarm (a whole thruster's thrust) into the first 50 ms judged (thruster 0 stuck open:
-    8.5 N of error in fy there against 0.5 N after)."""
+    (N, N m), that axis (-1: none) and its peak. Steps without an estimate hold the previous one.
+    Only that segment is band-limited: filtered over the whole session, the zero-phase filter
+    carried the unmodelled fault before the alarm (a whole thruster's thrust) into the first 50 ms
+    judged (thruster 0 stuck open: 8.5 N of error in fy there against 0.5 N after)."""
     import numpy as np
 
     from harness.demo import lowpass
@@ -183,15 +188,16 @@ def _nrmse(t_ns, wrench, act, from_ns: int, min_peak: float = 10.0) -> float:
         est[:, c] = col[idx]
     start = max(int(from_ns // 1_000_000) + 1, int(np.argmax(~np.isnan(est[:, 0]))))
     if start >= len(act) - 50:
-        return float("nan")
+        return float("nan"), -1, float("nan")
     e_lp, a_lp = lowpass(np.nan_to_num(est[start:])), lowpass(act[start:])
-    worst = float("nan")
+    worst, axis, at = float("nan"), -1, float("nan")
     for c in range(6):
         peak = float(np.abs(a_lp[:, c]).max())
         if peak >= min_peak:
             err = float(np.sqrt(np.mean((e_lp[:, c] - a_lp[:, c]) ** 2))) / peak
-            worst = err if not worst >= err else worst
-    return worst
+            if not worst >= err:
+                worst, axis, at = err, c, peak
+    return worst, axis, at
 
 
 def _max_thrust(case: FaultCase) -> float:
