@@ -254,10 +254,13 @@ def plot_ee_error(traces: dict, study: dict, path, title: str):
     axs[0, 0].legend(fontsize=8, loc="upper right")
     axs[-1, 0].set_xlabel("time [s]")
     today = datetime.date.today().isoformat()
+    rt = study.get("realtime")
+    realtime = ("" if rt is None else f"; real time: {100 * rt['ee_friction_error_removed']['overall']:.1f} %, "
+                f"{100 * rt['joint_torque_error_cut']['overall']:.1f} %")
     fig.suptitle(f"End-effector position error |actual - desired|: {title}\n"
                  f"overall friction error removed {100 * study['ee_friction_error_removed']['overall']:.1f} %, "
-                 f"joint torque error cut {100 * study['joint_torque_error_cut']['overall']:.1f} % (lockstep, {today})",
-                 fontsize=10)
+                 f"joint torque error cut {100 * study['joint_torque_error_cut']['overall']:.1f} % (lockstep)"
+                 f"{realtime}; {today}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
