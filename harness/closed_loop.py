@@ -402,7 +402,8 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
     zenoh), each its own process, CAN over udp_multicast in a private network namespace (root and
     iproute2, as the capacity benchmark); the robot at SCHED_FIFO ``rt_priority``, the gateway and
     the compensator at ``service_priority`` (0: normal scheduling). Returns (the compensated
-    run's trace, the robot side's summary: frames, pacing, and the drive commands' delays)."""
+    run's trace, the robot side's summary: frames, pacing, and the drive commands' delays).
+    ``BSC_DEBUG_CLOSED_LOOP=1`` in the environment prints the services' last output."""
     import os
     import signal
     import subprocess
@@ -479,9 +480,10 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
                 except subprocess.TimeoutExpired:
                     p.kill()
                     ends.append(p.communicate())
-            if os.environ.get("BSC_DEBUG_CLOSED_LOOP"):
+            if os.environ.get("BSC_DEBUG_CLOSED_LOOP"):            # the services' last words, to diagnose a run
                 for p, (o, e) in zip(procs, ends):
-                    say(f"--- {p.args[6:8]} rc {p.returncode}\n{o[-1500:]}\n{e[-1500:]}")
+                    name = p.args[p.args.index("gateway.cli") + 1]
+                    say(f"--- bsc {name}, exit status {p.returncode}\n{o[-1500:]}\n{e[-1500:]}")
     import json
 
     summary = json.loads((out / "summary.json").read_text())["can"]
