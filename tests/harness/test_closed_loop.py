@@ -155,3 +155,17 @@ def test_bsc_demo_closed_loop_writes_the_report_keys_and_figures(tmp_path, capsy
         assert (out / name).stat().st_size > 10_000, name
     assert main(run + ["--realtime"]) == 2
     assert "give --closed-loop too" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--drives-from", "tcp/127.0.0.1:9"], "--drives-from needs --realtime"),
+    (["--command-limit", "0"], "--command-limit must be a fraction in (0, 1]"),
+    (["--command-limit", "1.5"], "--command-limit must be a fraction in (0, 1]"),
+    (["--drive-max-age", "0"], "--drive-max-age must be positive"),
+])
+def test_bsc_sim_closed_loop_options_are_checked_in_one_line(args, says, tmp_path, capsys):
+    from gateway.cli import main
+
+    assert main(["sim", "--duration", "0.1", "--no-plots", "--quiet", "--out", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err
+    assert says in err and err.count("\n") == 1
