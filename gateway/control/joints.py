@@ -24,7 +24,12 @@ Safety, per arm (:class:`JointCompensator`):
   ``limited:rate`` while it does);
 - the correction is magnitude-limited (``max_correction`` of the joint's torque limit) and
   rate-limited, so a wrong estimate that passes as good moves the command by a bounded amount at
-  a bounded speed (flags ``limited:magnitude``, ``limited:rate``).
+  a bounded speed (flags ``limited:magnitude``, ``limited:rate``);
+- plausibility: the friction an estimate implies (``applied - actual = e + c``) must oppose each
+  moving joint's motion (friction dissipates); an estimate implying friction that drives the
+  joint, beyond ``plausible_margin`` of its limit in ``plausible_steps`` estimates in a row (an
+  F/T bias the gateway did not flag), opens the loop (``estimate:implausible (<joints>)``) for at
+  least ``plausible_hold_s`` after the last such trip.
 
 Every transition is recorded in :attr:`JointCompensator.events` (for the service's alerts).
 Pure: no I/O, no clock; times are the sensor times the efforts and commands carry.
@@ -53,16 +58,24 @@ class JointLoopSettings:
     max_rate_per_s: float = 100.0   # |d correction / dt| <= this fraction of the torque limit per s
     stale_s: float = 0.01           # no good estimate this recent behind a command: open loop
     resume_good: int = 5            # good estimates in a row to close the loop again
+    # plausibility: the friction an estimate implies must oppose the motion (it dissipates)
+    plausible_min_rate: float = 0.02   # rad/s: judged only on joints moving faster than this
+    plausible_margin: float = 0.05     # implied friction along the motion beyond this fraction of the limit...
+    plausible_steps: int = 10          # ...in this many estimates in a row: open loop,
+    plausible_hold_s: float = 1.0      # and it stays open this long after the last implausible trip
 
     def __post_init__(self):
-        for name in ("kp", "ki_per_s", "max_correction", "max_rate_per_s", "stale_s"):
+        for name in ("kp", "ki_per_s", "max_correction", "max_rate_per_s", "stale_s", "plausible_min_rate",
+                     "plausible_margin", "plausible_hold_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ControlError(f"joint loop: {name} must be a finite number >= 0, got {v!r}")
         if self.stale_s <= 0 or self.max_rate_per_s <= 0:
             raise ControlError("joint loop: stale_s and max_rate_per_s must be > 0")
-        if not isinstance(self.resume_good, int) or self.resume_good < 1:
-            raise ControlError(f"joint loop: resume_good must be an integer >= 1, got {self.resume_good!r}")
+        for name in ("resume_good", "plausible_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ControlError(f"joint loop: {name} must be an integer >= 1, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -88,6 +101,8 @@ class _Arm:
         self.last_cmd_ns: int | None = None
         self.last_est_ns: int | None = None     # the last estimate used (good)
         self.good_run = 0                  # good estimates in a row since the last bad one
+        self.implausible = np.zeros(len(joints), dtype=int)   # estimates in a row implying driving friction
+        self.hold_until_ns = -1            # open at least until then (an implausible estimate)
         self.closed = False
         self.why_open = "no-estimate"
         self.pending: dict[int, dict[str, float]] = {}     # t_ns -> joint -> torque (assembling)
@@ -192,17 +207,30 @@ class JointCompensator:
         if d is None:
             return                                  # no desired torque known yet: nothing to compare
         s = self.settings
+        e = d - full
+        # the friction this estimate implies, applied - actual = e + c, must oppose the motion: a
+        # sensor fault the gateway did not flag (an F/T bias) shows as friction that drives the joint
+        rate = np.asarray(eff.rate_rad_s, dtype=float)
+        if rate.shape == e.shape:
+            wrong = ((np.abs(rate) > s.plausible_min_rate)
+                     & ((e + a.correction) * np.sign(rate) < -s.plausible_margin * a.limit))
+            a.implausible = np.where(wrong, a.implausible + 1, 0)
+            if np.any(a.implausible >= s.plausible_steps):
+                bad = [j for j, n in zip(a.joints, a.implausible) if n >= s.plausible_steps]
+                self._open(a, eff.t_ns, f"estimate:implausible ({','.join(bad)})")
+                a.hold_until_ns = eff.t_ns + round(s.plausible_hold_s * 1e9)
+                a.last_est_ns = eff.t_ns
+                return
         dt = 0.0 if a.last_est_ns is None else min((eff.t_ns - a.last_est_ns) * 1e-9, s.stale_s)
         a.last_est_ns = eff.t_ns
         a.good_run += 1
         if not a.closed:
-            if a.good_run < s.resume_good or not self.enabled:
+            if a.good_run < s.resume_good or not self.enabled or eff.t_ns < a.hold_until_ns:
                 return
             a.closed = True
             a.integral[:] = 0.0
             a.correction[:] = 0.0
             self.events.append(LoopEvent(a.name, eff.t_ns, "closed", "estimates good"))
-        e = d - full
         cap = s.max_correction * a.limit
         # conditional integration: not further into a drive that is saturated in that direction
         applied = d + a.correction

@@ -188,3 +188,32 @@ def test_drive_command_payload_round_trips_and_bad_payloads_are_refused():
             decode_drive_command(bad)
     with pytest.raises(ControlError):
         encode_drive_command(DriveCommand("arm0", 5, JOINTS, (float("nan"), 0.0), (0, 0), (0, 0), True))
+
+
+def test_an_estimate_implying_friction_that_drives_the_joint_opens_the_loop_and_holds_it_open():
+    # an F/T bias the gateway does not flag: the estimate of j1 is 400 N m too high while j1 turns
+    # forward, so the friction it implies (applied - estimated actual) pushes the joint along
+    s = JointLoopSettings(plausible_steps=10, plausible_hold_s=0.05)
+    c = JointCompensator([("arm0", JOINTS)], [LIMIT], s)
+    d = np.array([200.0, -100.0])
+
+    def feed(k, bias, rate=(0.3, -0.2)):
+        t = k * MS
+        c.desired("arm0", t, d)
+        act = d + (c.arms["arm0"].correction if c.arms["arm0"].closed else 0) - FRICTION * np.sign(rate)
+        est = act + [bias, 0.0]
+        c.estimate(JointEfforts("arm0", t, JOINTS, tuple(est), tuple(est), (), 0, rate, True))
+        return c.command("arm0", t)
+
+    for k in range(100):
+        assert feed(k, 0.0).closed or k < 5                  # plausible: friction against the motion
+    out = [feed(k, 400.0) for k in range(100, 120)]
+    assert [o.closed for o in out[:9]] == [True] * 9 and not out[9].closed      # 10 in a row
+    assert out[9].flags == ("estimate:implausible (arm0/j1)",) and out[9].torque_nm == tuple(d)
+    # held open for plausible_hold_s even though the estimates are plausible again
+    back = [feed(k, 0.0) for k in range(120, 200)]
+    first_closed = next(i for i, o in enumerate(back) if o.closed)
+    assert 120 + first_closed >= 109 + 50
+    # a joint that does not move is not judged (stiction: any friction within +-static is possible)
+    for k in range(200, 300):
+        assert feed(k, 400.0, rate=(0.0, 0.0)).closed
