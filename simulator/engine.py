@@ -184,8 +184,8 @@ class Simulation:
                 raise ValueError(f"degrade: thruster index {d['thruster']} outside 0..{self.layout.n - 1}")
             if d["kind"] == "ft_bias_drift" and d["arm"] not in arms:
                 raise ValueError(f"degrade: no arm {d['arm']!r} (arms: {', '.join(arms)})")
-            if d["kind"] == "thruster_stuck" and d["state"] not in ("open", "closed"):
-                raise ValueError("degrade: thruster_stuck state must be 'open' or 'closed'")
+            if d["kind"] == "thruster_stuck" and d["state"] not in ("open", "closed", "free"):
+                raise ValueError("degrade: thruster_stuck state must be 'open', 'closed' or 'free'")
 
     # Every degradation is a function of time: from its onset on, it sets its value at every step
     # (in list order, so a later entry for the same item wins).
@@ -218,7 +218,7 @@ class Simulation:
             if d["kind"] == "thruster_loss":
                 factor[on, d["thruster"]] = d["factor"]
             else:
-                stuck[on, d["thruster"]] = 1 if d["state"] == "open" else -1
+                stuck[on, d["thruster"]] = {"open": 1, "closed": -1, "free": 0}[d["state"]]   # free: as commanded again
         self.thr_err.degrade, self.thr_err.stuck = factor[-1].copy(), stuck[-1].copy()
         return factor, stuck
 
