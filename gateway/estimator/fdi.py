@@ -30,6 +30,13 @@ open"). The signatures use the NOMINAL valve wrenches (the filter's prior): the 
 follow a fault once it is there, and ``theta`` is then relative to nominal thrust (a healthy
 thruster delivers 0.9-1.0 of it).
 
+The filter learns from an IMU sample only when its normalised innovation squared is at most
+:attr:`FdiSettings.gate` (the sample that first shows a gross fault comes before the detector
+has seen it), and not at all while a fault is suspected. A confirmed stuck valve is modelled
+through the valve mask; if it comes back (its own signature with the opposite sign, the valve
+taken as commanded), the fault is cleared: an alarm of type ``cleared``, the mask back to the
+command.
+
 Everything here is compiled (numba, explicit loops, no fastmath, nogil, cache): :func:`observe`
 takes one IMU update's tap, the live estimator and the offline run (:func:`run_events`) call the
 same function, so a replay gives the same alarms as the live run. No I/O.
@@ -75,7 +82,7 @@ MAX_FAULTS = 4
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
  _F_RT) = range(14)
 _NF = 14
-CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE = 0, 1, 2, 3, 4
+CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR = 0, 1, 2, 3, 4, 5
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
 EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
 _NEV = len(EVENT_FIELDS)
@@ -376,7 +383,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         bit = 1 << j
         st[_S_OPEN] = float(int(st[_S_OPEN]) & ~bit)
         st[_S_CLOSED] = float(int(st[_S_CLOSED]) & ~bit)
-        st[o + _F_STAGE] = CLEARED_STAGE
+        st[o + _F_STAGE] = TO_CLEAR
         st[_S_CLEARED] += 1.0
         st[_S_HDR + _RAISED * h_all + hyp] = 0.0       # it may fail again
         for k in range(5 * h_all):                      # the detectors restart on the valve as commanded
@@ -427,7 +434,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             st[_S_BEST + w] = best
             st[_S_RUN + w] = 1.0
         if (st[_S_RUN + w] < cfg[_C_HOLD + w] or st[_S_HDR + _RAISED * h_all + best] != 0.0 or confirming
-                or nf >= MAX_FAULTS):
+                or recovering or nf >= MAX_FAULTS):      # one decision at a time: a recovery looks like a new fault
             continue
         st[_S_HDR + _RAISED * h_all + best] = 1.0
         o = fbase + _NF * nf
@@ -461,11 +468,25 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     stuck-open valve (modelled open through :func:`valve_mask`): its learned wrench scaled to the
     size measured while it was confirmed (always open, its wrench can no longer be told from the
     bias states, and a valve that had never fired still holds the nominal prior). A stuck-closed
-    valve needs only the mask."""
+    valve needs only the mask. A stuck valve just cleared (:func:`observe`): its wrench and the bias
+    states relearn (their variances grow by :data:`RELEARN_SIGMA` of its nominal wrench), as the
+    two were one sum while it was stuck open, and it was not learnt while stuck closed."""
     n = int(cfg[_C_N])
     fbase = _S_HDR + 6 * 2 * n
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
+        if st[o + _F_STAGE] == TO_CLEAR:
+            # while stuck, the valve's wrench and the bias states were one sum (always open) or the
+            # valve was not learnt (never open): both relearn
+            j = int(st[o + _F_HYP]) // 2
+            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
+            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            for q in range(6):
+                v = RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+                P[6 * j + q, 6 * j + q] += v
+                P[6 * n + q, 6 * n + q] += v
+            st[o + _F_STAGE] = CLEARED_STAGE
+            continue
         if st[o + _F_STAGE] != TO_FILTER:
             continue
         j = int(st[o + _F_HYP]) // 2
@@ -526,7 +547,7 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
     out = []
     for f in range(int(st[_S_NFAULTS])):
         r = st[o + _NF * f:o + _NF * (f + 1)]
-        if r[_F_STAGE] == CLEARED_STAGE:
+        if r[_F_STAGE] == CLEARED_STAGE or r[_F_STAGE] == TO_CLEAR:
             continue
         hyp, A, B = r[_F_HYP], r[_F_A], r[_F_B]
         out.append((int(hyp) // 2, FAMILIES[int(hyp) % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
