@@ -1,6 +1,8 @@
 """The zenoh side of bsc: samples -> estimator -> efforts; monitor -> alerts; recorder -> MCAP."""
 __version__ = "0.1.0"
 
+import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory first: drivers/jitcache.py)
+
 # The arithmetic of the compiled kernels that turn frames into samples and efforts
 # (drivers/kernel.py, gateway/estimator/core.py, chain_kernel.py, thruster_kernel.py). Bump it with
 # any change that alters a bit of a published sample or effort: every recorded session carries it
