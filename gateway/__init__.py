@@ -8,5 +8,8 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # any change that alters a bit of a published sample or effort: every recorded session carries it
 # (metadata bsc.session "kernels"), and `bsc replay --check` says when a log's efforts came from
 # other kernels. 2: the thruster fault detector (gateway/estimator/fdi.py) holds the filter's
-# learning while it suspects a fault and models a confirmed one.
-KERNELS = "2"
+# learning while it suspects a fault and models a confirmed one. 3: the joint filter
+# (gateway/estimator/joint_filter.py): joint accelerations and each F/T sensor's bias from the
+# F/T sensor and the encoder rates; full torques the distal and sensor sides fused per joint;
+# JointEfforts.ft_bias.
+KERNELS = "3"

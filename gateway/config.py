@@ -12,6 +12,7 @@ neither gives keeps the default documented here (:data:`DOCS`, one line per key)
     [drivers]      device timing: the frame clock's rate, when a silent device is stale
     [estimator]    the sync policy (gateway/estimator/core.py CoreSettings)
     [estimator.thrusters]   the thruster filter's noise figures and priors (ThrusterFilterSettings)
+    [estimator.joints]      the joint filter's noise figures (JointFilterSettings)
     [recording]    the MCAP file the session is recorded to
 
 Sections are frozen dataclasses; the estimator's are the estimator's own (``CoreSettings``,
@@ -240,6 +241,22 @@ DOCS = {
     "estimator.thrusters.walk_moment_nm": "random walk of each thruster's moment, N m per sqrt(s)",
     "estimator.thrusters.bias_force_sigma_n": "prior of the bias states seen as force, N",
     "estimator.thrusters.bias_moment_sigma_nm": "prior of the bias states seen as moment, N m",
+    "estimator.joints": "The joint filter: joint accelerations and F/T bias per arm from the F/T sensor and the "
+                        "encoder rates (docs/estimator.md, section 2b).",
+    "estimator.joints.enabled": "false: joint accelerations by least squares from the F/T wrench alone, torques "
+                                "from the sensor side (the estimator before the joint filter)",
+    "estimator.joints.jerk_psd": "white jerk of each joint, rad^2/s^5 (how fast joint accelerations may change)",
+    "estimator.joints.rate_sigma_rad_s": "encoder rate noise per sample with the wire's resolution, rad/s",
+    "estimator.joints.force_sigma_n": "F/T force noise per sample with the wire's resolution, N",
+    "estimator.joints.torque_sigma_nm": "F/T moment noise per sample with the wire's resolution, N m",
+    "estimator.joints.accel_prior": "initial joint acceleration uncertainty beyond the least-squares start, rad/s^2",
+    "estimator.joints.bias_prior_n": "F/T force bias after taring, 1 sigma, N",
+    "estimator.joints.bias_prior_nm": "F/T moment bias after taring, 1 sigma, N m",
+    "estimator.joints.bias_walk_n": "F/T force bias random walk, N per sqrt(s)",
+    "estimator.joints.bias_walk_nm": "F/T moment bias random walk, N m per sqrt(s)",
+    "estimator.joints.max_gap_s": "a longer silence between epochs restarts the joint filter, s",
+    "estimator.joints.model_uncertainty": "relative error of the model's masses and inertias, 1 sigma: weighs the "
+                                          "distal side (model) against the sensor side (F/T) per joint",
     "estimator.fdi": "The thruster fault detector (docs/fdi.md); fdi = false in [estimator] turns it off.",
     "estimator.fdi.short_s": "gross faults: the GLR's forgetting window, s",
     "estimator.fdi.h_short": "gross faults: alarm threshold of the GLR (chi-squared; healthy sessions peak near 20)",

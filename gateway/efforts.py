@@ -29,7 +29,9 @@ class JointEfforts:
     from the model); ``simplified_nm``: the paper's projection of the sensor wrench.
     ``commanded_nm``: the latest commanded motor torques seen on the arm bus (``()`` before the
     first command), received at ``commanded_t_ns`` (0 if none). ``rate_rad_s``: the joint rates
-    the estimate used (what friction analysis plots torque residuals against).
+    the estimate used (what friction analysis plots torque residuals against). ``ft_bias``: the
+    bias of the arm's F/T sensor the joint filter has learnt, in the sensor's frame, force (N)
+    then moment (N m); ``()`` while the filter starts, or with it off.
     """
 
     arm: str
@@ -42,6 +44,7 @@ class JointEfforts:
     rate_rad_s: tuple[float, ...]
     good: bool
     flags: tuple[str, ...] = ()
+    ft_bias: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

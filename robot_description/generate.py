@@ -82,6 +82,47 @@ THREE_ARM = RobotSpec(
 SPECS = {s.name: s for s in (PAPER, THREE_ARM)}
 
 
+def random_spec(seed: int) -> RobotSpec:
+    """A plausible free-flyer the tests have never seen: 2-3 arms of 2-4 revolute joints, mounted
+    within +-60 degrees of the +x side (where the scenarios put their target); two joints both
+    about z (planar), else the first about z, the second about y, the others about y or z; arms
+    4.2-5.5 m long in links of uneven length, 5-90 kg each (lighter outwards); a spacecraft of
+    800-2500 kg. For robustness studies (benchmarks/bench_accuracy.py --random)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    n_arms = int(rng.integers(2, 4))
+    mounts = np.sort(rng.uniform(-60.0, 60.0, n_arms))
+    while n_arms > 1 and np.diff(mounts).min() < 25.0:      # room between the mounts
+        mounts = np.sort(rng.uniform(-60.0, 60.0, n_arms))
+    arms = []
+    for k, mount in enumerate(mounts):
+        n = int(rng.integers(2, 5))
+        lengths = rng.uniform(0.6, 2.2, n)
+        lengths *= rng.uniform(4.2, 5.5) / lengths.sum()
+        mass = 90.0 * rng.uniform(0.5, 1.0)
+        links = []
+        for i, length in enumerate(lengths):
+            if i == 0 or n == 2:               # two joints: a planar arm (a yaw and a pitch reach no plane)
+                axis = (0.0, 0.0, 1.0)
+            elif i == 1 or rng.random() < 0.7:
+                axis = (0.0, 1.0, 0.0)
+            else:                              # (not x: a roll about the link itself moves no point of it)
+                axis = (0.0, 0.0, 1.0)
+            m = max(5.0, mass)
+            links.append(LinkSpec(round(float(length), 3), round(m, 1), round(m * length ** 2 / 12.0, 2), axis=axis,
+                                  effort_nm=round(float(150.0 + 60.0 * m * length / 10.0), 0)))
+            mass *= rng.uniform(0.4, 0.8)
+        arms.append(ArmSpec(f"arm{k}", float(round(mount, 1)), tuple(links)))
+    m_s = float(rng.uniform(800.0, 2500.0))
+    r = float(rng.uniform(1.3, 2.0))
+    i_xy = m_s * (3 * r ** 2 + 1.6 ** 2) / 12.0
+    inertia = (round(i_xy * rng.uniform(0.8, 1.2), 1), round(i_xy * rng.uniform(0.8, 1.2), 1),
+               round(m_s * r ** 2 / 2, 1))
+    return RobotSpec(name=f"random{seed}", mass_kg=round(m_s, 1), inertia_kgm2=inertia, radius_m=round(r, 2),
+                     arms=tuple(arms), imu_xyz_m=(0.3, -0.2, 0.1))
+
+
 def _f(x: float) -> str:
     return f"{x:.9g}"
 

@@ -28,6 +28,10 @@ Attribution uses the structure of the faults (docs/method.md):
   Over a task the pose correlates with the direction of motion, so part of ``A_tau(q) b`` leaks
   into the Coulomb fit; a Coulomb change small next to the arm's offset change (:data:`LEAK_RATIO`)
   is counted as the bias's, not as friction.
+- with the joint filter (docs/estimator.md, section 2b) the gateway estimates each F/T sensor's
+  bias and takes it out of the joint torques, so the offsets stay put and the bias itself is
+  tracked: a component of an arm's F/T bias off its baseline (``ft_bias_n``, ``ft_bias_nm``,
+  targets ``<arm>/fx`` .. ``<arm>/mz``) -> ``sensor`` on that arm.
 """
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .session import SessionFeatures
+from .session import FT_AXES, SessionFeatures
 
 
 @dataclass(frozen=True)
@@ -44,7 +48,7 @@ class Detector:
     """How one metric is watched across sessions (the ``[[analysis.detector]]`` table)."""
 
     name: str                  # rule name, reported in alerts
-    metric: str                # coulomb_nm | efficiency | offset_nm | quiet_offset
+    metric: str                # coulomb_nm | efficiency | offset_nm | quiet_offset | ft_bias_n | ft_bias_nm
     kind: str                  # actuator | thruster | sensor
     direction: str = "both"    # up | down | both
     floor_abs: float = 0.0
@@ -67,7 +71,14 @@ DEFAULT_DETECTORS = (
              description="direction-independent joint torque residual (F/T bias) off its baseline"),
     Detector("momentum-inconsistency", "quiet_offset", "sensor", "both", 5.0, 0.0,
              description="thruster wrench estimate with no thruster firing (F/T vs IMU) off its baseline"),
+    Detector("ft-bias-force", "ft_bias_n", "sensor", "both", 1.0, 0.0,
+             description="a force component of an arm's F/T bias (the joint filter's estimate) off its baseline"),
+    Detector("ft-bias-moment", "ft_bias_nm", "sensor", "both", 1.0, 0.0,
+             description="a moment component of an arm's F/T bias (the joint filter's estimate) off its baseline"),
 )
+
+METRICS = ("coulomb_nm", "efficiency", "offset_nm", "quiet_offset", "ft_bias_n", "ft_bias_nm")
+"""What a detector may watch (the rules file's ``metric``)."""
 
 
 @dataclass
@@ -177,6 +188,12 @@ def build_tracks(sessions: list[SessionFeatures], detectors=DEFAULT_DETECTORS,
             for t in targets:
                 vals = [_axis_value(s, t, det.metric) for s in sessions]
                 tracks.append(cusum_track(det, t, vals, baseline_sessions))
+        elif det.metric in ("ft_bias_n", "ft_bias_nm"):
+            comps = range(3) if det.metric == "ft_bias_n" else range(3, 6)
+            for arm in sorted({a for s in sessions for a in s.ft_bias}):
+                for i in comps:
+                    vals = [s.ft_bias[arm][i] if arm in s.ft_bias else float("nan") for s in sessions]
+                    tracks.append(cusum_track(det, f"{arm}/{FT_AXES[i]}", vals, baseline_sessions))
         else:
             raise ValueError(f"detector {det.name}: unknown metric {det.metric!r}")
     return tracks
@@ -217,6 +234,10 @@ def attribute(sessions: list[SessionFeatures], tracks: list[Track]) -> list[Find
             elif det.metric == "offset_nm":
                 arm = arm_of.get(tr.target, tr.target.split("/")[0])
                 now.setdefault(("sensor", arm, det.name), (tr, []))[1].append(tr)
+            elif det.metric in ("ft_bias_n", "ft_bias_nm"):
+                arm = tr.target.rsplit("/", 1)[0]
+                key = next((k for k in now if k[0] == "sensor" and k[1] == arm), ("sensor", arm, det.name))
+                now.setdefault(key, (tr, []))[1].append(tr)
         momentum = [tr for tr in tracks if tr.detector.metric == "quiet_offset" and tr.alarm[k]]
         if momentum:
             arms = [key for key in now if key[0] == "sensor"]
@@ -275,10 +296,16 @@ def _finding(sessions, k, key, lead: Track, group: list[Track], state: str, sinc
         ev["threshold_h"] = lead.detector.h
         ev["k_ref"] = lead.detector.k_ref
     sev = ("critical" if worst >= lead.detector.critical_z else lead.detector.severity) if state == "raised" else "info"
+    biases = [tr for tr in group if tr.detector.metric in ("ft_bias_n", "ft_bias_nm")]
+    if kind == "sensor" and biases:
+        moved = ", ".join(f"{tr.target.rsplit('/', 1)[1]} {tr.values[k]:+.2f} (baseline {tr.mu:+.2f})"
+                          for tr in biases if math.isfinite(tr.values[k]))
+        sensor = f"F/T sensor of {target}: bias moved, as the joint filter estimates it: {moved} N / N m"
+    else:
+        sensor = f"F/T sensor of {target}: bias (joint residual offsets moved, friction did not)"
     what = {"actuator": f"joint {target}: Coulomb friction changed",
             "thruster": f"thruster axis {target}: efficiency dropped",
-            "sensor": (f"F/T sensor of {target}: bias (joint residual offsets moved, friction did not)"
-                       if target != "imu"
+            "sensor": (sensor if target != "imu"
                        else "IMU vs F/T sensors: momentum inconsistency while no thruster fired")}[kind]
     if kind == "actuator" and group:
         tr = group[0]

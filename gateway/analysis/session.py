@@ -22,6 +22,12 @@ Per thruster axis (``fx fy fz mx my mz``, body frame about C)::
 ``eta`` the efficiency (actual / commanded), ``c`` an offset: with no thruster firing, the
 estimated thruster wrench is the momentum balance of F/T sensors and IMU and must be zero, so
 ``c`` is the momentum (in)consistency between them (an F/T or IMU bias), not a thruster fault.
+
+Per arm, the bias of its F/T sensor as the gateway's joint filter learnt it (``ft_bias`` of
+``JointEfforts``, sensor frame, N and N m): the mean over the second half of the session's good
+estimates, when the filter has long left its prior. With the joint filter the full torques no
+longer carry the bias, so this, not the residual offset ``c``, shows a drifting sensor; logs of
+gateways without the filter have none, and ``c`` still does.
 """
 from __future__ import annotations
 
@@ -47,6 +53,8 @@ AXIS_MIN_CMD_RMS = 10.0               # N or N m: an axis commanded less has no 
 MIN_AXIS_SAMPLES = 100
 QUIET_GUARD_NS = 20_000_000           # "no thruster firing": valves closed 20 ms either side
 MIN_QUIET_SAMPLES = 20
+MIN_BIAS_SAMPLES = 100                # per half session: an F/T bias needs the filter settled
+FT_AXES = AXES                        # the F/T bias's components, sensor frame
 
 
 class AnalysisError(GatewayError, ValueError):
@@ -98,6 +106,7 @@ class SessionFeatures:
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)          # e.g. analysed from a truncated log's intact part
     thruster_faults: list[dict] = field(default_factory=list)   # within the session (analysis.fdi.ThrusterAlarm)
+    ft_bias: dict[str, list[float]] = field(default_factory=dict)   # arm -> F/T bias (fx fy fz N, mx my mz N m)
 
     @property
     def name(self) -> str:
@@ -244,6 +253,7 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
     except Exception as exc:  # noqa: BLE001 - any reader failure means: not a readable log
         raise AnalysisError(f"{path}: not a readable MCAP log ({exc})") from None
     joint_rows: dict[str, list] = {}
+    bias_rows: dict[str, list] = {}
     arm_joints: dict[str, list[str]] = {}
     thr_rows: list = []
     health: dict[str, dict[str, float]] = {}
@@ -260,6 +270,8 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
             if m.schema_name == JOINT_SCHEMA:
                 robot = robot or _robot_of(m.topic)
                 counts["joint_efforts"] += 1
+                if d["good"] and len(d.get("ft_bias") or ()) == 6:
+                    bias_rows.setdefault(d["arm"], []).append(d["ft_bias"])
                 if not d["good"] or not d["commanded_nm"]:
                     counts["not_good"] += 1
                     continue
@@ -297,6 +309,9 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
     index = int(series["session_index"]) if series.get("session_index", "").isdigit() else None
     feats = SessionFeatures(str(path), robot or meta.get("bsc.session", {}).get("robot", ""), index,
                             int(start), int(end), arms=arm_joints, health=health, metadata=meta, counts=counts)
+    for arm, rows in bias_rows.items():
+        if len(rows) >= 2 * MIN_BIAS_SAMPLES:
+            feats.ft_bias[arm] = [float(v) for v in np.mean(np.asarray(rows[len(rows) // 2:], dtype=float), axis=0)]
     for arm, rows in joint_rows.items():
         a = np.asarray(rows, dtype=float)
         n = len(arm_joints[arm])

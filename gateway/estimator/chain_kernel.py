@@ -9,9 +9,13 @@ rate ``w_s`` (3,) and the joint state ``q``, ``dq`` (n_joints,):
 - ``a_s = (thr_f + arm_f) / m_s`` (m/s^2, classical acceleration of C) and
   ``dw_s = I_s^-1 ((thr_t + arm_t) - w_s x I_s w_s)`` (rad/s^2); body frame;
 - ``simp`` (n_joints,): the paper's simplified torques ``A_tau(q) w``, N m;
-- ``ddq`` (n_joints,): joint accelerations (rad/s^2) from the F/T sensors, per arm the weighted
+- ``ddq`` (n_joints,): joint accelerations (rad/s^2): the joint filter's (:mod:`.joint_filter`,
+  F/T rows and encoder rates); with the filter off, or at its start, per arm the weighted
   minimum-norm least-squares solution of ``J ddq = w - w0`` (``torques.joint_accelerations_from_ft``);
-- ``full`` (n_joints,): ``tau = A_tau w - h(q, dq, ddq, a_s, w_s, dw_s)`` (paper eq. 11), N m.
+- ``full`` (n_joints,): the joint torques, N m. With the joint filter: the distal side, the
+  model's wrench for the filtered ``ddq`` (``w0 + J ddq``) carried down the chain, i.e. the model's
+  inverse dynamics of the links beyond each joint (``torques._rnea``); with it off, the sensor
+  side ``tau = A_tau w - h(q, dq, ddq, a_s, w_s, dw_s)`` (paper eq. 11).
 
 A recursive Newton-Euler pass over each serial chain, one sample at a time in explicit loops, in
 each joint's internal frame (joint axis +z, :class:`.model.ChainLink`); its test oracle is the
@@ -24,14 +28,17 @@ Pinocchio form in :mod:`.torques`. Per arm:
 2. backward: those wrenches summed from the tip back to C, then to the sensor frame: ``w0`` (the
    sensor wrench the model predicts with ``ddq = 0``) and ``J``;
 3. ``ddq``: Householder QR of the weighted ``J``, a one-sided Jacobi SVD when it is near rank
-   deficiency (:func:`_lstsq`: lstsq's minimum-norm answer either way);
-4. forward again with ``ddq``: the measured wrench carried down the chain, each proximal link's
-   inertial wrench taken off; the axis component at joint i is ``full_i``.
+   deficiency (:func:`_lstsq`: lstsq's minimum-norm answer either way); then the joint filter's
+   predict and update with ``J``, ``w0`` and the rates (it starts from the least-squares ``ddq``);
+4. forward again with ``ddq``: the wrench (the model's with the filter, else the measured one)
+   carried down the chain, each proximal link's inertial wrench taken off; the axis component at
+   joint i is ``full_i``.
 
 Bits: every epoch runs the same scalar operations in a fixed order (explicit loops, no
-reductions, no BLAS, ``fastmath=False`` so no reassociation or fused multiply-add), and nothing
-carries from one epoch to the next, so a batch of N, any split of it and N calls of one give the
-same bits. They differ from Pinocchio's and LAPACK's at ~1e-12 relative.
+reductions, no BLAS, ``fastmath=False`` so no reassociation or fused multiply-add), and only the
+joint filter's state carries from one epoch to the next, in epoch order, so a batch of N, any
+split of it and N calls of one give the same bits. They differ from Pinocchio's and LAPACK's at
+~1e-12 relative.
 
 Usage::
 
@@ -48,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from . import joint_filter as jf
 from .model import ChainLink, EstimatorModel, EstimatorModelError, skew
 
 WEIGHTS = (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
@@ -466,32 +474,43 @@ def _chain_start(a_s: F64, dw_s: F64, g: F64, A: F64, G: F64) -> None:
 @_jit
 def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64, dq: F64,
            ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64, arm_w: F64,
-           gc: F64, per: F64, U: F64, FU: F64, W: F64, Bt: F64, Vm: F64, cs: F64, vec: F64) -> None:
-    """One epoch into the output rows; the trailing arrays are scratch (see :func:`_scratch`)."""
+           gc: F64, per: F64, U: F64, FU: F64, W: F64, Bt: F64, Vm: F64, cs: F64, vec: F64,
+           dt: float, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64, fh: F64) -> None:
+    """One epoch into the output rows; ``gc`` .. ``vec`` are scratch (see :func:`_scratch`).
+
+    The joint filter (:mod:`.joint_filter`, on when ``fc[C_ON]``): ``dt`` (s) since the last
+    epoch, ``ft_ok`` (p,) / ``rate_ok`` (n_joints,) nonzero where this epoch's F/T sample / encoder
+    rate may be applied, ``fst`` (p, ROW) and ``fP`` (p, MAX_STATE, MAX_STATE) its state,
+    ``fc`` its constants, ``fh`` (SCRATCH_ROWS, MAX_STATE) scratch."""
     p = arm_n.shape[0]
     # the arms' wrench on the spacecraft and the base motion
     for k in range(6):
         arm_w[k] = 0.0
+    if not (dt > 0.0 and dt <= fc[jf.C_MAX_DT]):       # the first epoch, or after a silence: start again
+        for j in range(p):
+            fst[j, jf.S_STARTED] = 0.0
     for j in range(p):
         _sensor_to_c(sensor[j], ft[j], gc[j])
         for k in range(6):
             arm_w[k] += gc[j, k]
     for k in range(6):
         arm_w[k] = -arm_w[k]
+    V, A, G, Gd, tmp, bw, hv = vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6]
+    for k in range(6):
+        bw[k] = arm_w[k]
     m_s = base[0]
     for k in range(3):
-        a_s[k] = (thr[k] + arm_w[k]) / m_s
+        a_s[k] = (thr[k] + bw[k]) / m_s
     w0, w1, w2 = w_s[0], w_s[1], w_s[2]
     i0 = base[1] * w0 + base[2] * w1 + base[3] * w2
     i1 = base[4] * w0 + base[5] * w1 + base[6] * w2
     i2 = base[7] * w0 + base[8] * w1 + base[9] * w2
-    t0 = (thr[3] + arm_w[3]) - (w1 * i2 - w2 * i1)
-    t1 = (thr[4] + arm_w[4]) - (w2 * i0 - w0 * i2)
-    t2 = (thr[5] + arm_w[5]) - (w0 * i1 - w1 * i0)
+    t0 = (thr[3] + bw[3]) - (w1 * i2 - w2 * i1)
+    t1 = (thr[4] + bw[4]) - (w2 * i0 - w0 * i2)
+    t2 = (thr[5] + bw[5]) - (w0 * i1 - w1 * i0)
     for k in range(3):
         dw_s[k] = base[10 + 3 * k] * t0 + base[11 + 3 * k] * t1 + base[12 + 3 * k] * t2
 
-    V, A, G, F, tmp, bw, hv = vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6]
     for j in range(p):
         n = arm_n[j]
         c0 = arm_col[j]
@@ -542,6 +561,8 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                     W[k, r] += FU[i, k, r]
             for r in range(6):
                 W[n, r] += per[i, 2, r]
+            for k in range(n):                 # the distal torque's response to each ddq (fusion)
+                fh[2 + i, k] = W[k, 5]
             for k in range(n + 1):
                 _force_to_parent(lk, cs[i, 0], cs[i, 1], W[k], W[k])
         for k in range(n + 1):
@@ -553,8 +574,44 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
         for r in range(6):
             bw[r] = wt[r] * (ft[j, r] - W[n, r])
         _lstsq(Bt, 6, n, bw, Vm, hv, rcond, ddq, c0)
-        # 4. forward with ddq: the measured wrench down the chain, proximal inertial wrenches off
+        # 3b. the joint filter: ddq and the F/T bias from every sensor of the arm; the torques
+        # are then the distal side, the model's wrench for the filtered ddq carried down the chain
+        fused = False
+        if fc[jf.C_ON] != 0.0:
+            st = fst[j]
+            Pj = fP[j]
+            if st[jf.S_STARTED] != 0.0:
+                jf.predict(st, Pj, n, dt, fc)
+                jf.update(st, Pj, n, W, ft[j], ft_ok[j] != 0, dq[c0:c0 + n], rate_ok[c0:c0 + n], fc, fh[0], fh[1])
+                for i in range(n):
+                    ddq[c0 + i] = st[n + i]
+                fused = True
+            elif ft_ok[j] != 0:
+                jf.start(st, Pj, n, dq[c0:c0 + n], ddq[c0:c0 + n], fc)
+                fused = True
+            else:
+                st[jf.S_STARTED] = 0.0
+            for r in range(6):
+                s_ = W[n, r]
+                for k in range(n):
+                    s_ += W[k, r] * ddq[c0 + k]
+                bw[r] = s_
+        # 4. forward with ddq: the wrench down the chain, proximal inertial wrenches off. Without
+        # the filter, the measured one (the sensor side); with it, also the model's wrench for the
+        # filtered ddq (the distal side) and the measured one less the bias, fused per joint
         _chain_start(a_s, dw_s, gc[j], A, G)
+        if fused:
+            _sensor_to_c(sensor[j], bw, Gd)
+            for r in range(6):
+                hv[r] = ft[j, r]
+            for r in range(6):                 # the rows of A_tau: unit wrenches down the chain
+                for k in range(6):
+                    bw[k] = 0.0
+                bw[r] = 1.0
+                _sensor_to_c(sensor[j], bw, tmp)
+                for i in range(n):
+                    _force_to_child(lks[i], cs[i, 0], cs[i, 1], tmp, tmp)
+                    fh[8 + i, r] = tmp[5]
         for i in range(n):
             lk = lks[i]
             col = c0 + i
@@ -562,12 +619,20 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
             s = cs[i, 1]
             _force_to_child(lk, c, s, G, G)
             full[col] = G[5]
+            if fused:
+                _force_to_child(lk, c, s, Gd, Gd)
+                fh[0, i] = Gd[5]
+                fh[1, i] = G[5]
             _motion_to_child(lk, c, s, A, A)
             _joint_motion(per[i, 0], dq[col], A)
             A[5] += ddq[col]
-            _inertia(lk, A, F)
+            _inertia(lk, A, tmp)
             for k in range(6):
-                G[k] -= F[k] + per[i, 1, k]
+                G[k] -= tmp[k] + per[i, 1, k]
+                if fused:
+                    Gd[k] -= tmp[k] + per[i, 1, k]
+        if fused:
+            jf.fuse(fst[j], fP[j], n, fc, fh[2:8], fh[8:14], W, hv, fh[0], fh[1], full[c0:c0 + n])
 
 
 @_jit
@@ -595,7 +660,7 @@ def _scratch(p: int, L: int) -> tuple[F64, F64, F64, F64, F64, F64, F64, F64, F6
     o += sizes[6]
     cs = buf[o:o + sizes[7]].reshape((L, 2))
     o += sizes[7]
-    vec = buf[o:o + sizes[8]].reshape((7, 6))       # twist, acceleration, wrench, scratch, rhs, Householder
+    vec = buf[o:o + sizes[8]].reshape((7, 6))       # twist, acceleration, wrenches (2), scratch, rhs, Householder
     return gc, per, U, FU, W, Bt, Vm, cs, vec
 
 
@@ -615,23 +680,27 @@ def _check_shapes(arm_n: I64, arm_col: I64, link: F64, wt: F64, nj: int, q: F64,
 @_jit
 def epoch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
                  dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
-                 arm_w: F64) -> None:
+                 arm_w: F64, dt: float, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64) -> None:
     """One epoch: inputs ``q``, ``dq`` (n_joints,), ``ft`` (p, 6), ``thr`` (6,), ``w_s`` (3,);
-    writes ``simp``, ``ddq``, ``full`` (n_joints,), ``a_s``, ``dw_s`` (3,), ``arm_w`` (6,)."""
+    writes ``simp``, ``ddq``, ``full`` (n_joints,), ``a_s``, ``dw_s`` (3,), ``arm_w`` (6,); the
+    joint filter's arguments as :func:`_epoch`."""
     nj = simp.shape[0]
     _check_shapes(arm_n, arm_col, link, wt, nj, q, dq, ft, thr, w_s)
     if ddq.shape[0] != nj or full.shape[0] != nj or a_s.shape[0] != 3 or dw_s.shape[0] != 3 or arm_w.shape[0] != 6:
         raise ValueError("output shapes")
+    _check_filter(arm_n.shape[0], nj, ft_ok, rate_ok, fst, fP, fc)
     gc, per, U, FU, W, Bt, Vm, cs, vec = _scratch(arm_n.shape[0], link.shape[1])
+    fh = np.empty((jf.SCRATCH_ROWS, jf.MAX_STATE))
     _epoch(arm_n, arm_col, sensor, link, base, wt, rcond, q, dq, ft, thr, w_s,
-           simp, ddq, full, a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec)
+           simp, ddq, full, a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec, dt, ft_ok, rate_ok, fst, fP, fc, fh)
 
 
 @_jit
 def batch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
                  dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
-                 arm_w: F64) -> None:
-    """B epochs (leading axis of every input and output), each exactly as :func:`epoch_kernel`."""
+                 arm_w: F64, dt: float, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64) -> None:
+    """B epochs (leading axis of every input and output), each exactly as :func:`epoch_kernel`, in
+    order, ``dt`` apart, every sample applied (``ft_ok``, ``rate_ok`` as for one epoch)."""
     B = q.shape[0]
     nj = simp.shape[1]
     _check_shapes(arm_n, arm_col, link, wt, nj, q, dq, ft, thr, w_s)
@@ -641,10 +710,22 @@ def batch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt
             raise ValueError("every input and output needs the same leading (batch) size")
     if ddq.shape[1] != nj or full.shape[1] != nj or a_s.shape[1] != 3 or dw_s.shape[1] != 3 or arm_w.shape[1] != 6:
         raise ValueError("output shapes")
+    _check_filter(arm_n.shape[0], nj, ft_ok, rate_ok, fst, fP, fc)
     gc, per, U, FU, W, Bt, Vm, cs, vec = _scratch(arm_n.shape[0], link.shape[1])
+    fh = np.empty((jf.SCRATCH_ROWS, jf.MAX_STATE))
     for b in range(B):
         _epoch(arm_n, arm_col, sensor, link, base, wt, rcond, q[b], dq[b], ft[b], thr[b], w_s[b],
-               simp[b], ddq[b], full[b], a_s[b], dw_s[b], arm_w[b], gc, per, U, FU, W, Bt, Vm, cs, vec)
+               simp[b], ddq[b], full[b], a_s[b], dw_s[b], arm_w[b], gc, per, U, FU, W, Bt, Vm, cs, vec,
+               dt, ft_ok, rate_ok, fst, fP, fc, fh)
+
+
+@_jit
+def _check_filter(p: int, nj: int, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64) -> None:
+    if ft_ok.shape[0] != p or rate_ok.shape[0] != nj or fc.shape[0] != jf.N_CONST:
+        raise ValueError("ft_ok must be (p,), rate_ok (n_joints,), the filter constants (N_CONST,)")
+    if fst.shape[0] < p or fst.shape[1] != jf.ROW or fP.shape[0] < p or fP.shape[1] != jf.MAX_STATE \
+            or fP.shape[2] != jf.MAX_STATE:
+        raise ValueError("the joint filter's state must be (p, ROW) and (p, MAX_STATE, MAX_STATE)")
 
 
 class EpochKernel:
@@ -653,10 +734,13 @@ class EpochKernel:
     ``weights`` (6,): 1/sigma of the F/T channels for the acceleration least squares (default
     :data:`WEIGHTS`); ``rcond``: singular values of the weighted ``J`` below ``rcond * s_max``
     count as zero (``None``: ``eps * max(6, n)``, as ``np.linalg.lstsq(rcond=None)``).
+    ``joint_filter``: the joint filter's settings (:mod:`.joint_filter`; ``enabled=False``: the
+    least-squares accelerations and the sensor-side torques, no state); its state carries from
+    one call to the next, epochs ``dt`` seconds apart (:meth:`reset` starts it again).
     """
 
     def __init__(self, model: EstimatorModel, weights: Sequence[float] | np.ndarray = WEIGHTS,
-                 rcond: float | None = None):
+                 rcond: float | None = None, joint_filter: jf.JointFilterSettings | None = None, dt: float = 1e-3):
         self.model = model
         self.arrays = pack(model)
         wt = np.array(weights, dtype=float)
@@ -666,11 +750,26 @@ class EpochKernel:
         self.weights = wt
         self.rcond = -1.0 if rcond is None else float(rcond)
         self.n_joints, self.n_arms = model.n_joints, model.n_arms
+        self.joint_filter = joint_filter or jf.JointFilterSettings()
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"dt must be a time > 0 in seconds, got {dt!r}")
+        self.dt = float(dt)
+        self._ft_ok = np.ones(self.n_arms, dtype=np.int64)
+        self._rate_ok = np.ones(self.n_joints, dtype=np.int64)
+        self._fc = self.joint_filter.constants()
+        self.reset()
         # private writeable copies: numba's dispatcher types read-only arrays on a slower path
         # (~0.05 us each per call) and compiles a second specialization for them
         a = self.arrays
         self._args = (a.arm_n.copy(), a.arm_col.copy(), a.sensor.copy(), a.link.copy(), a.base.copy(), wt.copy(),
                       self.rcond)
+
+    def reset(self) -> None:
+        """Forget the joint filter's state: the next epoch starts it again."""
+        self.filter_state, self.filter_cov = jf.new_state(self.n_arms)
+
+    def _filter_args(self) -> tuple[float, I64, I64, F64, F64, F64]:
+        return (self.dt, self._ft_ok, self._rate_ok, self.filter_state, self.filter_cov, self._fc)
 
     def epoch(self, q: np.ndarray, dq: np.ndarray, ft: np.ndarray, thr: np.ndarray, w_s: np.ndarray,
               out: Outputs | None = None) -> Outputs:
@@ -686,7 +785,7 @@ class EpochKernel:
         """
         if out is None:
             out = self.outputs()
-        epoch_kernel(*self._args, q, dq, ft, thr, w_s, *out)
+        epoch_kernel(*self._args, q, dq, ft, thr, w_s, *out, *self._filter_args())
         return out
 
     def outputs(self) -> Outputs:
@@ -705,5 +804,5 @@ class EpochKernel:
                 raise ValueError(f"{name} must be {want[name]}, got {x.shape}")
         out = (np.empty((B, nj)), np.empty((B, nj)), np.empty((B, nj)), np.empty((B, 3)),
                np.empty((B, 3)), np.empty((B, 6)))
-        batch_kernel(*self._args, q, dq, ft, thr, w_s, *out)
+        batch_kernel(*self._args, q, dq, ft, thr, w_s, *out, *self._filter_args())
         return out

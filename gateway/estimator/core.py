@@ -44,6 +44,7 @@ from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
 from . import chain_kernel as ck
+from . import joint_filter as jf
 from . import fdi as fd
 from . import thruster_kernel as tk
 from .model import EstimatorModel, EstimatorSettingsError
@@ -61,7 +62,8 @@ I64 = npt.NDArray[np.int64]
 F64 = npt.NDArray[np.float64]
 Record = Any                    # a numba record view of a SAMPLE_DTYPE row: numpy's types cannot name its fields
 ChainScratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]     # chain_kernel._scratch
-Chain = tuple[I64, I64, F64, F64, F64, F64, F64, ChainScratch]        # chain_kernel._epoch's model, weights, rcond
+JointFilter = tuple[F64, F64, F64, F64, I64, I64]                   # joint_filter: state, cov, constants, scratch, ok
+Chain = tuple[I64, I64, F64, F64, F64, F64, F64, ChainScratch, JointFilter]   # chain_kernel._epoch's arguments
 ThrusterArrays = tk.State                                              # CompiledThrusterFilter.state
 Scratch = tuple[F64, F64, F64, F64, F64, F64, F64, F64]     # three scratch arrays, then the fault detector's
 Views = tuple[I64, I64, I64, I64, I64, F64, F64, F64, F64, F64, Chain, ThrusterArrays, Scratch]
@@ -81,8 +83,8 @@ PHASE_TRACK = 64             # the grid follows the bursts' middle with this tim
 # the scalar state (SI array)
 _CENTER, _HAVE_CENTER, _LAST_CLOSED, _EPOCHS, _GOOD, _LATE, _N_OPEN, _N_PEND, _N_HELD, _LEARNING, \
     _LEARN_MEMBERS, _GYRO_T, _HAVE_GYRO, _FAULTS, _THR_HAVE, _THR_T, _THR_VALVES, _N_OUT, _PEND_DROPPED, \
-    _HELD_DROPPED, _CAUSE = range(21)
-_N_SI = 21
+    _HELD_DROPPED, _CAUSE, _FILTER_T = range(22)
+_N_SI = 22
 
 # the common flags (bits 0..4 of a flag row), then 3 per arm, then 4 per joint
 F_WARMUP, F_STALE_IMU, F_MISSING_VALVES, F_SAT_IMU, F_FAULT_IMU = range(5)
@@ -96,6 +98,7 @@ class CoreSettings:
     max_open: int = 20                 # epochs waiting for members before the oldest is forced out
     imu_max_age_periods: int = 3       # an epoch's IMU sample may be this many IMU periods old (older: stale:imu)
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
+    joints: jf.JointFilterSettings = field(default_factory=jf.JointFilterSettings)
     fdi: fd.FdiSettings | None = field(default_factory=fd.FdiSettings)   # thruster fault detector (None: off)
     pending_capacity: int = 1 << 14    # slower-stream samples waiting for an epoch (oldest dropped beyond)
     held_capacity: int = 1 << 14       # samples held while the grid's phase is learnt
@@ -137,6 +140,8 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
         ("thruster_cmd_t_ns", np.int64),
         ("thruster_cmd_valves", np.int64),
         ("thruster_cmd_have", np.int64),
+        ("ft_bias", np.float64, (max(n_arms, 1), 6)),   # the joint filter's F/T bias per arm, sensor frame
+        ("ft_bias_have", np.int64, (max(n_arms, 1),)),
         ("flags", np.uint8, (n_flags,)),
         ("cause", np.int64),                    # the input row whose arrival computed it (-1: flush)
     ])
@@ -417,8 +422,11 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         fl[F_MISSING_VALVES] = 1
     ft_trusted = True
     ft = scratch[0]
+    jfs = chain[8]
+    ft_ok, rate_ok = jfs[4], jfs[5]
     for a in range(p):
         fa = _N_COMMON + 3 * a
+        ft_ok[a] = 0
         if ei[3 + 3 * a] == 0:
             fl[fa + A_MISSING] = 1
             for r in range(6):
@@ -427,15 +435,19 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
             continue
         for r in range(6):
             ft[a, r] = eft[a, r]
+        ft_ok[a] = 1
         if ei[4 + 3 * a] != 0:
             fl[fa + A_SATURATED] = 1
             ft_trusted = False
+            ft_ok[a] = 0
         if ei[5 + 3 * a] & cfg[9] != 0:
             fl[fa + A_FAULT] = 1
             ft_trusted = False
+            ft_ok[a] = 0
     for j in range(nj):
         fj = _N_COMMON + 3 * p + 4 * j
         base = 3 + 3 * p + 3 * j
+        rate_ok[j] = 0
         if ei[base] == 0:
             if jstate[j, 2] != 0:
                 fl[fj + J_STALE] = 1
@@ -445,10 +457,27 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         jstate[j, 0] = ej[j, 0]
         jstate[j, 1] = ej[j, 1]
         jstate[j, 2] = 1.0
+        rate_ok[j] = 1
         if ei[base + 1] != 0:
             fl[fj + J_SATURATED] = 1
+            rate_ok[j] = 0
         if ei[base + 2] & cfg[11] != 0:
             fl[fj + J_FAULT] = 1
+            rate_ok[j] = 0
+    # the joint filter applies an arm's F/T rows only when they are the model at this epoch: every
+    # joint of the arm fresh (the angles), and the base motion trusted (every F/T sample, the valve
+    # command and a fresh, sound IMU sample: no common flag)
+    arm_n, arm_col = chain[0], chain[1]
+    base_ok = ft_trusted
+    for k in range(_N_COMMON):
+        if fl[k] != 0:
+            base_ok = False
+    for a in range(p):
+        if not base_ok:
+            ft_ok[a] = 0
+        for j in range(arm_col[a], arm_col[a] + arm_n[a]):
+            if rate_ok[j] == 0:
+                ft_ok[a] = 0
     mask = ei[1] if ei[0] != 0 else 0
     if cfg[13] != 0:                       # the faults found so far: stuck valves as they are
         mask = fd.valve_mask(scratch[3], mask)
@@ -467,8 +496,13 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
     arm_w = scratch[1][3]
     ddq = scratch[2][0]
     gc, per, U, FU, W, Bt, Vm, cs, vec = chain[7]
+    # the joint filter's step: whole periods since its last epoch (the grid's microseconds of
+    # drift tracking are not motion); the first epoch: ~1.5e8 s, the filter starts
+    dt = ((t - si[_FILTER_T] + half) // _period) * _period * 1e-9
+    si[_FILTER_T] = t
     ck._epoch(chain[0], chain[1], chain[2], chain[3], chain[4], chain[5], chain[6][0], q, dq, ft, thr, w_s,
-              row["simplified_nm"], ddq, row["full_nm"], a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec)
+              row["simplified_nm"], ddq, row["full_nm"], a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec,
+              dt, ft_ok, rate_ok, jfs[0], jfs[1], jfs[2], jfs[3])
     # the filter learns only from whole, trusted steps (every F/T sample, none saturated or
     # faulty, and the valve command); the IMU samples whose interval a missing step falls in
     # are then not applied (tk.tf_imu)
@@ -476,6 +510,13 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         tk.push_epoch(tf[5], tf[6], tf[7], tf[8], t, arm_w, mask)
     row["t_ns"] = t
     row["cause"] = si[_CAUSE]
+    fst = jfs[0]
+    for a in range(p):
+        bo = 2 * chain[0][a]
+        have = jfs[2][jf.C_ON] != 0.0 and fst[a, jf.S_STARTED] != 0.0
+        row["ft_bias_have"][a] = 1 if have else 0
+        for r in range(6):
+            row["ft_bias"][a, r] = fst[a, bo + r] if have else 0.0
     for j in range(nj):
         row["rate_rad_s"][j] = jstate[j, 1]
         row["commanded_nm"][j] = jcmd[j]
@@ -543,7 +584,8 @@ def _views(I: I64, F: F64, lay: I64) -> Views:
     chain = (_i1(I, lay, 10), _i1(I, lay, 11), _f2(F, lay, 12), _f3(F, lay, 13), _f1(F, lay, 14),
              _f1(F, lay, 15), _f1(F, lay, 16),
              (_f2(F, lay, 17), _f3(F, lay, 18), _f2(F, lay, 19), _f3(F, lay, 20), _f2(F, lay, 21),
-              _f2(F, lay, 22), _f2(F, lay, 23), _f2(F, lay, 24), _f2(F, lay, 25)))
+              _f2(F, lay, 22), _f2(F, lay, 23), _f2(F, lay, 24), _f2(F, lay, 25)),
+             (_f2(F, lay, 44), _f3(F, lay, 45), _f1(F, lay, 46), _f2(F, lay, 47), _i1(I, lay, 48), _i1(I, lay, 49)))
     tf = (_f1(F, lay, 26), _f2(F, lay, 27), _f1(F, lay, 28), _f1(F, lay, 29), _f1(F, lay, 30),
           _i1(I, lay, 31), _f2(F, lay, 32), _i1(I, lay, 33), _i1(I, lay, 34), _f1(F, lay, 35))
     scratch = (_f2(F, lay, 36), _f2(F, lay, 37), _f2(F, lay, 38), _f1(F, lay, 39), _f1(F, lay, 40), _f2(F, lay, 41),
@@ -673,6 +715,7 @@ class EstimatorCore:
         si = np.zeros(_N_SI, dtype=np.int64)
         si[_LEARNING] = 1
         si[_LAST_CLOSED] = -(1 << 62)
+        si[_FILTER_T] = -(1 << 62)
         nj1 = max(nj, 1)
         arrays = ck.pack(model)
         L = arrays.link.shape[1]
@@ -695,6 +738,8 @@ class EstimatorCore:
             *kf.state,                                                               # 26-35
             np.zeros((p, 6)), np.zeros((4, 6)), np.zeros((1, nj1)),                  # 36-38
             *fdi_arrays,                                                             # 39-43
+            *jf.new_state(p), s.joints.constants(), np.zeros((jf.SCRATCH_ROWS, jf.MAX_STATE)),   # 44-47
+            np.zeros(max(p, 1), dtype=np.int64), np.zeros(nj1, dtype=np.int64),     # 48-49
         ])
         self._I, self._F, self._lay = packed.I, packed.F, packed.lay
         self._si = packed.views[0]
@@ -800,12 +845,14 @@ class EstimatorCore:
             full, simp, rate = r["full_nm"].tolist(), r["simplified_nm"].tolist(), r["rate_rad_s"].tolist()
             cmd, cmd_have = r["commanded_nm"].tolist(), r["commanded_have"].tolist()
             cmd_t = r["commanded_t_ns"].tolist()
+            bias, bias_have = r["ft_bias"].tolist(), r["ft_bias_have"].tolist()
             for arm, names, lo, hi, bits, a in spans:
                 flags = self._flags(fl, bits, a)
                 have = all(cmd_have[lo:hi])
                 out.append(make_j(arm, t, names, tuple(full[lo:hi]), tuple(simp[lo:hi]),
                                   tuple(cmd[lo:hi]) if have else (), min(cmd_t[lo:hi]) if have else 0,
-                                  tuple(rate[lo:hi]), not flags, flags))
+                                  tuple(rate[lo:hi]), not flags, flags,
+                                  tuple(bias[a]) if bias_have[a] else ()))
             flags = self._flags(fl, self._thr_bits, -1)
             thr = r["thruster"].tolist()
             have = bool(r["thruster_cmd_have"])

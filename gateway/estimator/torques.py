@@ -130,20 +130,29 @@ def joint_accelerations_from_ft(model: EstimatorModel, data: EstimatorData, q: n
     the arm has joints (planar two-link arm: fx, fy, tz for two joints). This is the high-bandwidth
     acceleration the full estimate needs: no numerical differentiation, no lag.
     """
-    pm, pd = model.robot.model, data.pin_data
     _rnea(model, data, q, dq, np.zeros(model.n_joints), a_s, w_s, dw_s)
     w0 = _model_sensor_wrenches(model, data)
     wt = np.array([4.0, 4.0, 4.0, 40.0, 40.0, 40.0]) if weights is None else np.asarray(weights, dtype=float)
     ddq = np.zeros(model.n_joints)
+    for arm, J in zip(model.arms, sensor_jacobians(model, data)):
+        rhs = (np.asarray(ft[arm.index], dtype=float) - w0[arm.index]) * wt
+        ddq[list(arm.columns)] = np.linalg.lstsq(J * wt[:, None], rhs, rcond=None)[0]
+    return ddq
+
+
+def sensor_jacobians(model: EstimatorModel, data: EstimatorData) -> list[np.ndarray]:
+    """Per arm ``J`` (6, n): the sensor wrench (sensor frame) per unit acceleration of each of its
+    joints, nothing else moving, at the configuration in ``data.q`` (one Pinocchio RNEA per joint)."""
+    pm, pd = model.robot.model, data.pin_data
     v0 = np.zeros(pm.nv)
+    out = []
     for arm in model.arms:
         J = np.empty((6, len(arm.columns)))
+        j1 = arm.joints[0]
         for k, col in enumerate(arm.columns):
             a = np.zeros(pm.nv)
             a[6 + col] = 1.0
             pin.rnea(pm, pd, data.q, v0, a)
-            j1 = arm.joints[0]
             J[:, k] = arm.sensor_inv.act(pd.oMi[j1].act(pd.f[j1])).vector
-        rhs = (np.asarray(ft[arm.index], dtype=float) - w0[arm.index]) * wt
-        ddq[list(arm.columns)] = np.linalg.lstsq(J * wt[:, None], rhs, rcond=None)[0]
-    return ddq
+        out.append(J)
+    return out

@@ -94,7 +94,7 @@ def _check(table: dict, allowed: dict, where: str, required: tuple[str, ...]) ->
 
 def load_rules(path: str | Path | None = None) -> RuleSet:
     """Read a rules file (the shipped default when ``path`` is None)."""
-    from gateway.analysis.change import Detector
+    from gateway.analysis.change import METRICS, Detector
 
     path = Path(path) if path is not None else DEFAULT_RULES
     try:
@@ -143,8 +143,8 @@ def load_rules(path: str | Path | None = None) -> RuleSet:
         _check(d, _DET_KEYS, where, ("name", "metric", "kind"))
         if d.get("direction", "both") not in ("up", "down", "both"):
             raise RulesError(f"{where}: direction must be up, down or both")
-        if d["metric"] not in ("coulomb_nm", "efficiency", "offset_nm", "quiet_offset"):
-            raise RulesError(f"{where}: metric must be coulomb_nm, efficiency, offset_nm or quiet_offset")
+        if d["metric"] not in METRICS:
+            raise RulesError(f"{where}: metric must be one of {', '.join(METRICS)}")
         detectors.append(Detector(**{k: (float(v) if isinstance(v, int) and k != "clear_sessions" else v)
                                      for k, v in d.items()}))
     baseline = an.get("baseline_sessions", 3)

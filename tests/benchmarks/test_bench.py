@@ -98,9 +98,11 @@ def test_every_name_a_benchmark_imports_exists():
 
 
 def test_the_accuracy_study_rows():
-    """bench_accuracy (issue 17's study): per robot the worst joint of each estimate, finite, in %."""
+    """bench_accuracy (issue 17's study): per robot the worst joint of each of the four estimates,
+    finite, in %; the gateway's (the joint filter) judged against 2 %."""
     from benchmarks import bench_accuracy
 
     rows = bench_accuracy.figures(quick=True)
-    assert len(rows) == 6 and all(r["unit"] == "% NRMSE" and 0 <= r["value"] < 100 for r in rows)
+    assert len(rows) == 8 and all(r["unit"] == "% NRMSE" and 0 <= r["value"] < 100 for r in rows)
+    assert [r["target"] for r in rows if r["target"]] == ["<= 2 %"] * 2
     assert {r["name"].split(":")[0] for r in rows} == {"capture", "three_arm"}

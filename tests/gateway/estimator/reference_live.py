@@ -39,6 +39,7 @@ import numpy as np
 from drivers import wire
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.estimator.joint_filter import JointFilterSettings
 from gateway.estimator.model import EstimatorModel
 from gateway.estimator.thrusters import ThrusterFilter, ThrusterFilterSettings
 from gateway.estimator.torques import joint_accelerations_from_ft, joint_torques, joint_torques_simplified
@@ -46,12 +47,15 @@ from gateway.estimator.wrench import arm_reaction
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
+from reference_joint_filter import SequentialFilter, _fused, _J_w0
+
 
 @dataclass(frozen=True)
 class LiveSettings:
     max_open: int = 20                 # epochs waiting for members before the oldest is forced out
     imu_max_age_periods: int = 3       # the IMU sample an epoch uses may be this many IMU periods old
     thrusters: ThrusterFilterSettings = field(default_factory=ThrusterFilterSettings)
+    joints: JointFilterSettings = field(default_factory=JointFilterSettings)
 
 
 class _Epoch:
@@ -125,6 +129,9 @@ class LiveEstimator:
         self._no_valves = np.zeros(self.layout.n)
         self._no_valves.setflags(write=False)
         self._stale_imu_ns = self.settings.imu_max_age_periods * self.imu_period_ns
+        # the joint filter per arm (numpy, the kernel's order) and the last epoch's time
+        self._jf = [SequentialFilter(len(a.columns), s.joints, dtype=np.float64) for a in self.model.arms]
+        self._filter_t: int | None = None
 
     # -- input -------------------------------------------------------------------------------
     def add(self, sample) -> None:
@@ -287,7 +294,8 @@ class LiveEstimator:
         row: list[float] = []
         efts = e.ft
         ft_trusted = True                 # every F/T sample present, none saturated or faulty
-        for a in self.arms:
+        ft_ok = [False] * self._n_arms    # per arm: its sample may be applied (joint filter)
+        for ai, a in enumerate(self.arms):
             w = efts.get(a)
             if w is None:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
@@ -297,6 +305,7 @@ class LiveEstimator:
                 continue
             row += w.force_n
             row += w.torque_nm
+            ft_ok[ai] = not w.saturated and not (w.status & wire.FT_FAULT)
             if w.saturated:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[a].add(f"saturated:{a}")
@@ -308,6 +317,7 @@ class LiveEstimator:
         ft = np.array(row, dtype=float).reshape(self._n_arms, 6)
         ejs = e.joints
         q, dq = self._q, self._dq
+        rate_ok = np.zeros(self._n_joints, dtype=bool)
         for i, name in enumerate(self.joint_names):
             js = ejs.get(name)
             if js is None:
@@ -317,6 +327,7 @@ class LiveEstimator:
             q[i] = js.angle_rad
             dq[i] = js.rate_rad_s
             self._have_joint[i] = True
+            rate_ok[i] = not js.saturated and not (js.status & wire.DRIVE_FAULT)
             if js.saturated:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[self._joint_arm[i]].add(f"saturated:{name}")
@@ -324,6 +335,11 @@ class LiveEstimator:
                 arm_flags = arm_flags or {x: set() for x in self.arms}
                 arm_flags[self._joint_arm[i]].add(f"fault:{name}")
 
+        # the joint filter: F/T rows only with the arm's joints fresh and the base motion trusted
+        base_ok = ft_trusted and not common
+        for arm in self.model.arms:
+            if not base_ok or not rate_ok[list(arm.columns)].all():
+                ft_ok[arm.index] = False
         valves = self._valves(e)
         arm_w = arm_reaction(self.model, ft)
         kf = self.kf
@@ -336,12 +352,42 @@ class LiveEstimator:
         # base motion: the spacecraft is pushed by the thrusters and the arms, nothing else
         m = self.model
         w_s = kf.w
+        sj = self.settings.joints
+        # whole periods since the filter's last epoch (the grid's drift tracking is not motion)
+        dt = ((t - self._filter_t + self.half) // self.period_ns) * self.period_ns * 1e-9 \
+            if self._filter_t is not None else 0.0
+        if sj.enabled and not 0.0 < dt <= sj.max_gap_s:
+            for f in self._jf:
+                f.started = False
         a_s = (thr[:3] + arm_w[:3]) / m.mass_s
         dw_s = np.linalg.solve(m.inertia_s, (thr[3:] + arm_w[3:]) - np.cross(w_s, m.inertia_s @ w_s))
         data = self.data
         simp = joint_torques_simplified(m, data, q, ft)
         ddq = joint_accelerations_from_ft(m, data, q, dq, ft, a_s, w_s, dw_s)
         full = joint_torques(m, data, q, dq, ddq, ft, a_s, w_s, dw_s)
+        bias: list[tuple[float, ...]] = [()] * self._n_arms
+        if sj.enabled:
+            # the joint filter (gateway/estimator/joint_filter.py), in the kernel's order
+            self._filter_t = t
+            Js, w0 = _J_w0(m, data, q, dq, a_s, w_s, dw_s)
+            fddq = ddq.copy()
+            fused_arms = []
+            for arm in m.arms:
+                f, cols, n = self._jf[arm.index], list(arm.columns), len(arm.columns)
+                if f.started:
+                    f.step(Js[arm.index], ft[arm.index] - w0[arm.index], ft_ok[arm.index], dq[cols],
+                           rate_ok[cols], dt)
+                elif ft_ok[arm.index]:
+                    f.start(dq[cols], ddq[cols])
+                if f.started:
+                    fddq[cols] = f.x[n:2 * n]
+                    bias[arm.index] = tuple(float(v) for v in f.x[2 * n:])
+                    fused_arms.append(arm)
+            if fused_arms:
+                covs = [f.P for f in self._jf]
+                fused = _fused(m, data, sj, covs, q, dq, fddq, ft, a_s, w_s, dw_s, Js)
+                for arm in fused_arms:
+                    full[list(arm.columns)] = fused[list(arm.columns)]
 
         # a missing or bad F/T sample corrupts the base motion, so every arm's full estimate
         if arm_flags is not None:
@@ -357,7 +403,8 @@ class LiveEstimator:
                 simplified_nm=tuple(simp_l[col:col + n]),
                 commanded_nm=tuple(float(c[0]) for c in cmds) if have else (),
                 commanded_t_ns=min(c[1] for c in cmds) if have else 0,
-                rate_rad_s=tuple(dq_l[col:col + n]), good=not flags, flags=flags))
+                rate_rad_s=tuple(dq_l[col:col + n]), good=not flags, flags=flags,
+                ft_bias=bias[self.arms.index(a)]))
         flags = tuple(sorted(common))
         tc = self._thr_cmd
         self.good += not flags

@@ -10,8 +10,10 @@ import pytest
 import robot_description as rd
 from gateway.estimator import EstimatorModel, arm_reaction
 from gateway.estimator.chain_kernel import WEIGHTS, EpochKernel, lstsq_min_norm, pack
+from gateway.estimator.joint_filter import JointFilterSettings
 from gateway.estimator.model import EstimatorModelError
-from gateway.estimator.torques import joint_accelerations_from_ft, joint_torques, joint_torques_simplified
+from gateway.estimator.torques import (joint_accelerations_from_ft, joint_torques, joint_torques_simplified,
+                                       sensor_jacobians)
 from robot_description.generate import ArmSpec, LinkSpec, RobotSpec, urdf_text
 
 REL = 1e-9          # agreement with Pinocchio, relative to the largest value compared
@@ -49,10 +51,15 @@ ROBOTS = {"paper_robot": lambda: rd.load("paper_robot"), "three_arm": lambda: rd
           "asymmetric": _asymmetric, "massless_tips": _massless_tips}
 
 
+LS = JointFilterSettings(enabled=False)
+"""The joint filter off: least-squares accelerations and sensor-side torques, each epoch on its
+own (what these tests compare with the reference forms; the filter has tests/.../test_joint_filter.py)."""
+
+
 @pytest.fixture(scope="module", params=["paper_robot", "three_arm", "asymmetric"])
 def case(request):
     model = EstimatorModel.from_robot(ROBOTS[request.param]())
-    return model, EpochKernel(model)
+    return model, EpochKernel(model, joint_filter=LS)
 
 
 def _inputs(model: EstimatorModel, rng: np.random.Generator, B: int):
@@ -67,20 +74,12 @@ def _rel(a, b) -> float:
 
 def _conditions(model: EstimatorModel, q: np.ndarray, weights=WEIGHTS) -> np.ndarray:
     """Per arm, the condition number of the weighted J (Pinocchio's rnea; zero columns left out)."""
-    pm = model.robot.model
-    pd = pm.createData()
-    qq = pin.neutral(pm)
-    qq[7:] = q
+    data = model.data()
+    data.q[:] = pin.neutral(model.robot.model)
+    data.q[7:] = q
     wt = np.asarray(weights)[:, None]
     out = []
-    for arm in model.arms:
-        J = np.empty((6, len(arm.columns)))
-        for k, col in enumerate(arm.columns):
-            a = np.zeros(pm.nv)
-            a[6 + col] = 1.0
-            pin.rnea(pm, pd, qq, np.zeros(pm.nv), a)
-            j1 = arm.joints[0]
-            J[:, k] = arm.sensor_inv.act(pd.oMi[j1].act(pd.f[j1])).vector
+    for J in sensor_jacobians(model, data):
         s = np.linalg.svd(J * wt, compute_uv=False)
         out.append(s[0] / s[s > s[0] * 1e-12][-1])
     return np.array(out)
@@ -119,7 +118,7 @@ def test_rank_deficient_arm_gives_the_minimum_norm_solution():
     # a massless last link: the weighted J of every arm has an exactly zero column; lstsq's
     # minimum-norm solution gives that joint ddq = 0, and so must the kernel (no inf, no blow-up)
     model = EstimatorModel.from_robot(_massless_tips())
-    kernel = EpochKernel(model)
+    kernel = EpochKernel(model, joint_filter=LS)
     worst, _ = _against_pinocchio(model, kernel, np.random.default_rng(12), 40)
     assert (worst <= REL).all(), f"relative errors simp, ddq, full: {worst}"
     q, dq, ft, thr, w_s = _inputs(model, np.random.default_rng(13), 50)
@@ -133,7 +132,7 @@ def test_custom_weights_and_the_default_weights():
     assert WEIGHTS == (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
     model = EstimatorModel.from_robot(rd.load("three_arm"))
     wt = np.array([1.0, 2.0, 3.0, 10.0, 20.0, 30.0])
-    kernel = EpochKernel(model, weights=wt)
+    kernel = EpochKernel(model, weights=wt, joint_filter=LS)
     data = model.data()
     for q, dq, ft, thr, w_s in zip(*_inputs(model, np.random.default_rng(14), 20)):
         _, ddq, _, a_s, dw_s, _ = kernel.epoch(q, dq, ft, thr, w_s)
@@ -153,17 +152,25 @@ def test_base_motion_matches_the_numpy_formula(case):
         assert _rel(got, ref) <= 1e-13
 
 
-def test_same_bits_whatever_the_batch(case):
+@pytest.mark.parametrize("joint_filter", [False, True], ids=["least-squares", "joint-filter"])
+def test_same_bits_whatever_the_batch(case, joint_filter):
     model, kernel = case
+    if joint_filter:                       # state carried from epoch to epoch, in order
+        kernel = EpochKernel(model)
     rng = np.random.default_rng(16)
     N = 2345
     x = _inputs(model, rng, N)
+    kernel.reset()
     whole = kernel.batch(*x)
+    kernel.reset()
     chunks = [kernel.batch(*(a[lo:lo + 1000] for a in x)) for lo in range(0, N, 1000)]
     cuts = np.sort(rng.choice(np.arange(1, N), 40, replace=False))
+    kernel.reset()
     pieces = [kernel.batch(*(a[lo:hi] for a in x)) for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, N])]
+    kernel.reset()
     singles = [kernel.epoch(*(a[i] for a in x)) for i in range(N)]
     out = kernel.outputs()
+    kernel.reset()
     into = [[o.copy() for o in kernel.epoch(*(a[i] for a in x), out=out)] for i in range(N)]
     for k in range(6):
         assert np.array_equal(whole[k], np.concatenate([c[k] for c in chunks]))

@@ -346,7 +346,19 @@ def test_a_clock_set_mid_log_is_reported_and_replayed(candump, tmp_path, capsys)
     assert report["import"]["jumps"] == {"arm0": 1, "arm1": 1, "spacecraft": 1}
     assert "times jumping ahead" in capsys.readouterr().err
     assert report["good_efforts"] > 0.9 * report["efforts"]
-    assert all(got[k][-100:] == ref[k][-100:] for k in ref)    # after the jump: the clean log's efforts
+    # after the jump: the clean log's efforts, byte for byte, but for what the joint filter
+    # estimates: it started again at the jump (a silence of decades to it), so its full torques
+    # and F/T bias converge to the clean log's instead (tests/gateway/estimator/test_joint_filter.py)
+    for k in ref:
+        assert len(got[k]) >= 100
+        for (tg, bg), (tr, br) in zip(got[k][-100:], ref[k][-100:]):
+            if "/efforts/joints/" not in k:
+                assert (tg, bg) == (tr, br)
+                continue
+            g, r = json.loads(bg), json.loads(br)
+            assert tg == tr and len(g["ft_bias"]) == len(r["ft_bias"]) == 6
+            assert {x: v for x, v in g.items() if x not in ("full_nm", "ft_bias")} == \
+                {x: v for x, v in r.items() if x not in ("full_nm", "ft_bias")}
 
 
 def test_a_log_goes_back_onto_can(candump, capsys):

@@ -13,7 +13,8 @@ def test_default_rules_load():
     assert rs.path == str(DEFAULT_RULES)
     names = {r.name for r in rs.rules}
     assert {"joint-friction-high", "thruster-efficiency-low", "sensor-stale", "bus-load-high"} <= names
-    assert {d.metric for d in rs.detectors} == {"coulomb_nm", "efficiency", "offset_nm", "quiet_offset"}
+    assert {d.metric for d in rs.detectors} == {"coulomb_nm", "efficiency", "offset_nm", "quiet_offset",
+                                                "ft_bias_n", "ft_bias_nm"}
 
 
 @pytest.mark.parametrize("body, match", [
