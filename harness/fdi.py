@@ -15,6 +15,7 @@ The benchmark (``benchmarks/bench_fdi.py``) runs the family; the tests run a few
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from dataclasses import asdict, dataclass
@@ -28,7 +29,8 @@ EXPECTED = {"stuck_open": "stuck open", "stuck_closed": "stuck closed", "loss": 
 
 @dataclass(frozen=True)
 class FaultCase:
-    """One session: ``fault`` None for a healthy one; ``factor``: the thrust left by a loss."""
+    """One session: ``fault`` None for a healthy one; ``factor``: the thrust left by a loss;
+    ``end_s``: a stuck valve follows its command again from then on (None: it stays stuck)."""
 
     scenario: str = "capture"
     seed: int = 7
@@ -37,13 +39,15 @@ class FaultCase:
     fault: str | None = None
     onset_s: float = 3.0
     factor: float = 1.0
+    end_s: float | None = None
 
     @property
     def name(self) -> str:
         if self.fault is None:
             return f"{self.scenario}-s{self.seed}-healthy"
         size = f"-{1 - self.factor:.2f}" if self.fault == "loss" else ""
-        return f"{self.scenario}-s{self.seed}-t{self.thruster}-{self.fault}{size}-at{self.onset_s:.2f}"
+        end = f"-to{self.end_s:.2f}" if self.end_s is not None else ""
+        return f"{self.scenario}-s{self.seed}-t{self.thruster}-{self.fault}{size}-at{self.onset_s:.2f}{end}"
 
     def toml(self) -> str:
         """The session's scenario: the base scenario's file with this case's name, duration, seed
@@ -62,6 +66,9 @@ class FaultCase:
             state = "open" if self.fault == "stuck_open" else "closed"
             text += (f'\n[[degrade]]\nkind = "thruster_stuck"\nthruster = {self.thruster}\n'
                      f'onset_s = {float(self.onset_s)!r}\nstate = "{state}"\n')
+            if self.end_s is not None:
+                text += (f'\n[[degrade]]\nkind = "thruster_stuck"\nthruster = {self.thruster}\n'
+                         f'onset_s = {float(self.end_s)!r}\nstate = "free"\n')
         return text
 
 
@@ -101,6 +108,7 @@ class Verdict:
     commanded_duty: float = float("nan")   # the thruster's commanded open fraction, 0.5 s from the onset
     commanded_after: float = float("nan")  # ... from the onset to the session's end
     false_alarms: int = 0          # alarms that name anything else
+    cleared_delay_s: float = float("nan")   # a stuck valve that came back (end_s): end -> its clearing, s
     # thruster wrench from the alarm to the end, band-limited (20 Hz) NRMSE against the truth
     # (RMS error / peak, the worst axis): the offline filter of bsc analyze, and what the live
     # estimator published (both model the fault once it is confirmed)
@@ -150,7 +158,10 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
         v.commanded_after = float(((res.valve_masks[after] >> j) & 1).mean())
     want = EXPECTED[case.fault]
     for a in res.alarms:
-        if a.thruster == j and a.fault == want and not v.named:
+        if (case.end_s is not None and v.named and a.thruster == j and a.fault == "cleared"
+                and math.isnan(v.cleared_delay_s) and a.t_ns >= case.end_s * 1e9):
+            v.cleared_delay_s = a.t_ns / 1e9 - case.end_s
+        elif a.thruster == j and a.fault == want and not v.named:
             v.named = True
             v.delay_s = a.t_ns / 1e9 - case.onset_s
             v.theta = a.theta
@@ -236,10 +247,12 @@ def main(argv=None) -> int:
     p.add_argument("--fault", choices=FAULTS)
     p.add_argument("--onset", type=float, default=3.0)
     p.add_argument("--factor", type=float, default=0.7, help="thrust left by a loss")
+    p.add_argument("--end", type=float, help="a stuck valve follows its command again from this time, s")
     p.add_argument("--out", type=Path, required=True, help="the session's .mcap")
     a = p.parse_args(argv)
     factor = a.factor if a.fault == "loss" else 1.0
-    case = FaultCase(a.scenario, a.seed, a.duration, a.thruster, a.fault, a.onset, factor)
+    case = FaultCase(a.scenario, a.seed, a.duration, a.thruster, a.fault, a.onset, factor,
+                     a.end if a.fault in ("stuck_open", "stuck_closed") else None)
     record(case, a.out)
     print(json.dumps(judge(case, a.out).to_json(), indent=1))
     return 0
