@@ -11,5 +11,6 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # learning while it suspects a fault and models a confirmed one. 3: the joint filter
 # (gateway/estimator/joint_filter.py): joint accelerations and each F/T sensor's bias from the
 # F/T sensor and the encoder rates; full torques the distal and sensor sides fused per joint;
-# JointEfforts.ft_bias.
+# JointEfforts.ft_bias; and the thruster filter's innovation gate and the clearing of a stuck
+# valve (gateway/estimator/fdi.py).
 KERNELS = "3"

@@ -252,8 +252,9 @@ DOCS = {
     "estimator.joints.accel_prior": "initial joint acceleration uncertainty beyond the least-squares start, rad/s^2",
     "estimator.joints.bias_prior_n": "F/T force bias after taring, 1 sigma, N",
     "estimator.joints.bias_prior_nm": "F/T moment bias after taring, 1 sigma, N m",
-    "estimator.joints.bias_walk_n": "F/T force bias random walk, N per sqrt(s)",
-    "estimator.joints.bias_walk_nm": "F/T moment bias random walk, N m per sqrt(s)",
+    "estimator.joints.bias_walk_n": "random walk of the F/T bias state (the bias, and model error it absorbs), "
+                                    "N per sqrt(s)",
+    "estimator.joints.bias_walk_nm": "the same, moment, N m per sqrt(s)",
     "estimator.joints.max_gap_s": "a longer silence between epochs restarts the joint filter, s",
     "estimator.joints.model_uncertainty": "relative error of the model's masses and inertias, 1 sigma: weighs the "
                                           "distal side (model) against the sensor side (F/T) per joint",

@@ -231,12 +231,12 @@ def attribute(sessions: list[SessionFeatures], tracks: list[Track]) -> list[Find
             elif det.metric == "efficiency":
                 if tr.z[k] < 0:
                     now.setdefault(("thruster", tr.target, det.name), (tr, []))[1].append(tr)
-            elif det.metric == "offset_nm":
-                arm = arm_of.get(tr.target, tr.target.split("/")[0])
-                now.setdefault(("sensor", arm, det.name), (tr, []))[1].append(tr)
-            elif det.metric in ("ft_bias_n", "ft_bias_nm"):
-                arm = tr.target.rsplit("/", 1)[0]
-                key = next((k for k in now if k[0] == "sensor" and k[1] == arm), ("sensor", arm, det.name))
+            elif det.metric in ("offset_nm", "ft_bias_n", "ft_bias_nm"):
+                # one finding per F/T sensor, whichever of its indicators alarms (the rule of
+                # the one that raised it stays while it is active)
+                arm = (arm_of.get(tr.target, tr.target.split("/")[0]) if det.metric == "offset_nm"
+                       else tr.target.rsplit("/", 1)[0])
+                key = next((k for k in (*active, *now) if k[0] == "sensor" and k[1] == arm), ("sensor", arm, det.name))
                 now.setdefault(key, (tr, []))[1].append(tr)
         momentum = [tr for tr in tracks if tr.detector.metric == "quiet_offset" and tr.alarm[k]]
         if momentum:
@@ -301,6 +301,8 @@ def _finding(sessions, k, key, lead: Track, group: list[Track], state: str, sinc
         moved = ", ".join(f"{tr.target.rsplit('/', 1)[1]} {tr.values[k]:+.2f} (baseline {tr.mu:+.2f})"
                           for tr in biases if math.isfinite(tr.values[k]))
         sensor = f"F/T sensor of {target}: bias moved, as the joint filter estimates it: {moved} N / N m"
+    elif lead.detector.metric in ("ft_bias_n", "ft_bias_nm"):
+        sensor = f"F/T sensor of {target}: bias (the joint filter's estimate) off its baseline"
     else:
         sensor = f"F/T sensor of {target}: bias (joint residual offsets moved, friction did not)"
     what = {"actuator": f"joint {target}: Coulomb friction changed",

@@ -495,9 +495,20 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
             arm_w[k] += gc[j, k]
     for k in range(6):
         arm_w[k] = -arm_w[k]
+    # the base motion from the arms' wrench less the F/T biases the joint filter has learnt up to
+    # the last epoch: an arm's bias moves the base's acceleration in the model, and with it that
+    # arm's predicted wrench by a comparable amount (an arm's inertia about C can exceed the
+    # spacecraft's), which would leave the bias all but unobservable. arm_w itself, for the
+    # thruster filter (which has bias states of its own), stays the measured one.
     V, A, G, Gd, tmp, bw, hv = vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6]
     for k in range(6):
         bw[k] = arm_w[k]
+    if fc[jf.C_ON] != 0.0:
+        for j in range(p):
+            if fst[j, jf.S_STARTED] != 0.0:
+                _sensor_to_c(sensor[j], fst[j, 2 * arm_n[j]:2 * arm_n[j] + 6], tmp)
+                for k in range(6):
+                    bw[k] += tmp[k]
     m_s = base[0]
     for k in range(3):
         a_s[k] = (thr[k] + bw[k]) / m_s

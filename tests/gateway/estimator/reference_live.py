@@ -359,8 +359,14 @@ class LiveEstimator:
         if sj.enabled and not 0.0 < dt <= sj.max_gap_s:
             for f in self._jf:
                 f.started = False
-        a_s = (thr[:3] + arm_w[:3]) / m.mass_s
-        dw_s = np.linalg.solve(m.inertia_s, (thr[3:] + arm_w[3:]) - np.cross(w_s, m.inertia_s @ w_s))
+        base_w = arm_w                    # less the F/T biases the joint filter has learnt so far
+        if sj.enabled and self._filter_t is not None:
+            dt = ((t - self._filter_t + self.half) // self.period_ns) * self.period_ns * 1e-9
+            if 0.0 < dt <= sj.max_gap_s:
+                seen = np.array([f.x[2 * f.n:].astype(float) if f.started else np.zeros(6) for f in self._jf])
+                base_w = arm_w - arm_reaction(m, seen)
+        a_s = (thr[:3] + base_w[:3]) / m.mass_s
+        dw_s = np.linalg.solve(m.inertia_s, (thr[3:] + base_w[3:]) - np.cross(w_s, m.inertia_s @ w_s))
         data = self.data
         simp = joint_torques_simplified(m, data, q, ft)
         ddq = joint_accelerations_from_ft(m, data, q, dq, ft, a_s, w_s, dw_s)
