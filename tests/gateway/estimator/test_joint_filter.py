@@ -156,3 +156,20 @@ def test_a_wrong_model_costs_the_distal_joints_not_the_first(three_arm_session):
     third = [i for i, n in enumerate(names) if n.endswith("j3")]
     assert (err_f[first] <= 0.005).all(), dict(zip(names, err_f.round(4)))
     assert (err_ls[third] >= 1.5 * err_f[third]).all(), (err_ls[third], err_f[third])
+
+
+def test_robots_the_tests_have_never_seen(tmp_path):
+    """Random robots (robot_description.generate.random_spec: 2-3 arms of 2-4 joints, masses and
+    lengths drawn within plausible ranges), three_arm's capture task, the kernel with realistic
+    sensors and the true thruster wrench (benchmarks/bench_accuracy.py --random). Issue 17's target
+    is every joint within 2 %; measured 2026-11-26 on seeds 0-11: 90 of 98 joints, the others
+    distal joints of 8-21 N m peak at 2.1-12 %. Held here: the first joints (the sensor side needs
+    no model) within 0.2 %, and at least 80 % of every robot's joints within 2 %."""
+    from benchmarks.bench_accuracy import random_scenario, session
+
+    for seed in (1, 3, 4, 5):
+        res = session(str(random_scenario(seed, tmp_path)), 1, 3.0)
+        filt = {name: r["filter"] for name, r in res.items()}
+        first = {n: e for n, e in filt.items() if n.endswith("/j1")}
+        assert max(first.values()) <= 0.002, (seed, first)
+        assert sum(e <= 0.02 for e in filt.values()) >= 0.8 * len(filt), (seed, filt)
