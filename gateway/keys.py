@@ -15,6 +15,9 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/efforts/joints/<arm>              JointEfforts      estimated joint torques of an arm
     bsc/<robot>/efforts/thrusters                 ThrusterEffort    estimated thruster wrench
     bsc/<robot>/alerts                            Alert             monitor / analyze alerts
+    bsc/<robot>/commands/drives/<arm>             DriveCommand      the compensator's drive command
+                                                                    (bsc control; gateway/control/)
+    bsc/<robot>/commands/status                   Alert             the compensator's loop transitions
 
 Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sample
 the gateway decodes from the buses (commands included), ``ROOT/**`` for everything.
@@ -122,6 +125,22 @@ def observed_commands(robot: str) -> str:
 def commands(robot: str) -> str:
     """The controller's key space (the gateway never publishes here)."""
     return f"{robot_root(robot)}/commands/**"
+
+
+def drive_command(robot: str, arm: str) -> str:
+    """One arm's drive command, published by the compensator (``bsc control``)."""
+    return f"{robot_root(robot)}/commands/drives/{_chunk(arm)}"
+
+
+def drive_commands(robot: str) -> str:
+    """Every arm's drive commands of ``robot``."""
+    return f"{robot_root(robot)}/commands/drives/**"
+
+
+def control_status(robot: str) -> str:
+    """The compensator's loop transitions (Alert records), in the controller's key space because
+    that role may publish nowhere else."""
+    return f"{robot_root(robot)}/commands/status"
 
 
 def health(robot: str) -> str:

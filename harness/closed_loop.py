@@ -324,7 +324,7 @@ class DriveInbox:
     def __init__(self, session, sim, *, max_age_s: float = 0.005):
         import threading
 
-        from gateway.control.messages import drives_key
+        from gateway import keys
 
         self.sim, self.max_age_ns = sim, int(max_age_s * 1e9)
         names = list(sim.robot.joint_names)
@@ -335,7 +335,7 @@ class DriveInbox:
         self.received = 0
         self.rejected = 0
         self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(drives_key(sim.robot.name), self._on_sample)
+        self._sub = session.declare_subscriber(keys.drive_commands(sim.robot.name), self._on_sample)
 
     def _on_sample(self, sample) -> None:
         import time

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     import robot_description
     from gateway.commands import stop_on_sigterm
-    from gateway.control.messages import drives_key
+    from gateway import keys
     from gateway.control.service import ControlService
     from gateway.zenoh_config import config_from_args
 
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         with zenoh.open(config_from_args(args)) as session, \
                 ControlService(session, robot, settings, enabled=not args.open_loop) as ctl:
             mode = "open loop (pass-through)" if args.open_loop else "closed loop"
-            print(f"bsc control: robot {robot.name}, {mode}, publishing on {drives_key(robot.name)}",
+            print(f"bsc control: robot {robot.name}, {mode}, publishing on {keys.drive_commands(robot.name)}",
                   file=sys.stderr, flush=True)
             try:
                 ctl.run(stop, args.duration)

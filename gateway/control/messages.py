@@ -1,9 +1,9 @@
-"""What the compensator publishes: the joint drives' command, and its zenoh keys.
+"""What the compensator publishes: the joint drives' command (its zenoh keys are in :mod:`gateway.keys`).
 
-``bsc/<robot>/commands/drives/<arm>`` (:func:`drive_key`): a :class:`DriveCommand` per arm, the
-command the drives should apply. Only the controller role may publish under
+``bsc/<robot>/commands/drives/<arm>`` (``keys.drive_command``): a :class:`DriveCommand` per arm,
+the command the drives should apply. Only the controller role may publish under
 ``bsc/<robot>/commands/**`` (deploy/zenoh/router.json5); the gateway never does.
-``bsc/<robot>/commands/status`` (:func:`status_key`): the compensator's loop transitions (open
+``bsc/<robot>/commands/status`` (``keys.control_status``): the compensator's loop transitions (open
 <-> closed, per arm) as :class:`gateway.efforts.Alert` records, under the controller's key space
 because that role may publish nowhere else.
 
@@ -16,7 +16,6 @@ import json
 import math
 from dataclasses import dataclass, fields
 
-from gateway import keys
 from gateway.errors import GatewayError
 from gateway.log.schema import FORM_VERSION, record_of
 
@@ -45,23 +44,6 @@ class DriveCommand:
     correction_nm: tuple[float, ...]
     closed: bool
     flags: tuple[str, ...] = ()
-
-
-def drive_key(robot: str, arm: str) -> str:
-    """``bsc/<robot>/commands/drives/<arm>``."""
-    if not arm or set(arm) & set("*$?#/ "):
-        raise keys.KeyExprError(f"{arm!r} cannot be a key expression chunk (empty, or contains one of '*$?#/ ')")
-    return f"{keys.robot_root(robot)}/commands/drives/{arm}"
-
-
-def drives_key(robot: str) -> str:
-    """Every arm's drive commands of ``robot``."""
-    return f"{keys.robot_root(robot)}/commands/drives/**"
-
-
-def status_key(robot: str) -> str:
-    """``bsc/<robot>/commands/status``: the compensator's loop transitions (Alert records)."""
-    return f"{keys.robot_root(robot)}/commands/status"
 
 
 def encode_drive_command(cmd: DriveCommand) -> bytes:

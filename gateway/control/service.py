@@ -30,7 +30,7 @@ import time
 from drivers.samples import TorqueCommand
 from gateway import codec, keys
 from gateway.control.joints import JointCompensator, JointLoopSettings, LoopEvent
-from gateway.control.messages import drive_key, encode_drive_command, status_key
+from gateway.control.messages import encode_drive_command
 from gateway.efforts import Alert, JointEfforts
 
 log = logging.getLogger("gateway.control")
@@ -57,8 +57,8 @@ class ControlService:
             raise RuntimeError("the control service is closed")
         if not self._subs:
             for a in self.robot.arms:
-                self._pubs[a.name] = codec.declare_publisher(self.session, drive_key(self.name, a.name))
-            self._pubs["status"] = codec.declare_publisher(self.session, status_key(self.name))
+                self._pubs[a.name] = codec.declare_publisher(self.session, keys.drive_command(self.name, a.name))
+            self._pubs["status"] = codec.declare_publisher(self.session, keys.control_status(self.name))
             root = keys.robot_root(self.name)
             for key in (f"{root}/efforts/joints/**", f"{root}/sensors/commands/torque/**"):
                 self._subs.append(self.session.declare_subscriber(key, self._on_sample))

@@ -97,7 +97,8 @@ def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(c
     import zenoh
 
     from gateway import codec
-    from gateway.control.messages import DriveCommand, drive_key, encode_drive_command
+    from gateway.control.messages import DriveCommand, encode_drive_command
+    from gateway.keys import drive_command
     from gateway.zenoh_config import make_config
     from support import free_port, subscribed, wait_until
 
@@ -107,9 +108,9 @@ def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(c
     with zenoh.open(make_config(mode="router", listen=[ep])) as a, \
             zenoh.open(make_config(mode="client", connect=[ep])) as b:
         inbox = closed_loop.DriveInbox(b, sim, max_age_s=0.005)
-        pub = codec.declare_publisher(a, drive_key("paper_robot", "arm0"))
+        pub = codec.declare_publisher(a, drive_command("paper_robot", "arm0"))
         try:
-            subscribed(a, drive_key("paper_robot", "arm0"))
+            subscribed(a, drive_command("paper_robot", "arm0"))
             codec.put(pub, encode_drive_command(DriveCommand("arm0", t, ("arm0/j1", "arm0/j2"), (111.0, -22.0),
                                                              (100.0, -20.0), (11.0, -2.0), True)))
             wait_until(lambda: inbox.received == 1, "the drive command")

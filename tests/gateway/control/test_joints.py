@@ -11,7 +11,8 @@ import pytest
 
 from drivers.samples import TorqueCommand
 from gateway.control import ControlError, DriveCommand, JointCompensator, JointLoopSettings
-from gateway.control.messages import decode_drive_command, drive_key, encode_drive_command
+from gateway.control.messages import decode_drive_command, encode_drive_command
+from gateway.keys import drive_command
 from gateway.efforts import JointEfforts
 
 JOINTS = ("arm0/j1", "arm0/j2")
@@ -180,7 +181,7 @@ def test_bad_input_gets_a_clear_error():
 def test_drive_command_payload_round_trips_and_bad_payloads_are_refused():
     cmd = DriveCommand("arm0", 5, JOINTS, (1.0, 2.5), (0.5, 2.0), (0.5, 0.5), True, ("limited:rate",))
     assert decode_drive_command(encode_drive_command(cmd)) == cmd
-    assert drive_key("paper_robot", "arm0") == "bsc/paper_robot/commands/drives/arm0"
+    assert drive_command("paper_robot", "arm0") == "bsc/paper_robot/commands/drives/arm0"
     for bad in (b"nope", b"[]", b'{"type":"DriveCommand","v":1}',
                 encode_drive_command(cmd).replace(b'"torque_nm":[1.0,2.5]', b'"torque_nm":[1.0]'),
                 encode_drive_command(cmd).replace(b'"closed":true', b'"closed":1')):

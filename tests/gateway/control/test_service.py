@@ -19,7 +19,8 @@ import robot_description
 from drivers.samples import TorqueCommand
 from gateway import codec, keys
 from gateway.control import JointLoopSettings
-from gateway.control.messages import decode_drive_command, drives_key, status_key
+from gateway.control.messages import decode_drive_command
+from gateway.keys import control_status, drive_commands
 from gateway.control.service import ControlService
 from gateway.efforts import JointEfforts
 from gateway.zenoh_config import make_config
@@ -61,8 +62,8 @@ def effort(t_ns, good=True, flags=()):
 def test_corrections_go_out_on_the_commands_keys_and_a_bad_estimate_opens_the_loop(sessions):
     robot_side, ctl_side = sessions
     got = Got()
-    subs = [robot_side.declare_subscriber(drives_key(ROBOT), got.drive),
-            robot_side.declare_subscriber(status_key(ROBOT), got.alert)]
+    subs = [robot_side.declare_subscriber(drive_commands(ROBOT), got.drive),
+            robot_side.declare_subscriber(control_status(ROBOT), got.alert)]
     names = (keys.joint_efforts(ROBOT, "arm0"), keys.torque_command(ROBOT, "arm0/j1"),
              keys.torque_command(ROBOT, "arm0/j2"))
     pubs = {k: codec.declare_publisher(robot_side, k) for k in names}
@@ -73,8 +74,8 @@ def test_corrections_go_out_on_the_commands_keys_and_a_bad_estimate_opens_the_lo
         with ControlService(ctl_side, robot, settings) as ctl:
             for k in pubs:
                 subscribed(robot_side, k)
-            subscribed(ctl_side, drives_key(ROBOT))
-            subscribed(ctl_side, status_key(ROBOT))
+            subscribed(ctl_side, drive_commands(ROBOT))
+            subscribed(ctl_side, control_status(ROBOT))
 
             def step(k, **bad):
                 t = k * MS
