@@ -643,7 +643,7 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                 if fused:
                     Gd[k] -= tmp[k] + per[i, 1, k]
         if fused:
-            jf.fuse(fst[j], fP[j], n, fc, fh[2:8], fh[8:14], W, hv, fh[0], fh[1], full[c0:c0 + n])
+            jf.fuse(fst[j], fP[j], n, fc, fh[2:8], fh[8:14], W, hv, fh[0], fh[1], full[c0:c0 + n], fh[14])
 
 
 @_jit

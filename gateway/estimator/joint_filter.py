@@ -61,7 +61,7 @@ _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 C_ON, C_JERK, C_WALK_F, C_WALK_T, C_RATE_VAR, C_FORCE_VAR, C_TORQUE_VAR, C_ACC0_VAR, C_BIAS0_F, C_BIAS0_T, \
     C_MAX_DT, C_MODEL = range(12)
 N_CONST = 12
-SCRATCH_ROWS = 2 + 2 * 6         # h, P h; the arm's D (n, n) and A_tau (n, 6) for the fusion
+SCRATCH_ROWS = 3 + 2 * 6         # h, P h; the arm's D (n, n) and A_tau (n, 6) for the fusion; E_i
 # per arm bookkeeping (the state row after the MAX_STATE values)
 S_STARTED = MAX_STATE
 ROW = MAX_STATE + 1
@@ -219,7 +219,7 @@ def update(st: F64, P: F64, n: int, W: F64, ft: F64, ft_ok: bool, rate: F64, rat
 
 @_jit
 def fuse(st: F64, P: F64, n: int, c: F64, D: F64, A: F64, W: F64, ftb: F64, tau_d: F64, tau_s: F64,
-         out: F64) -> None:
+         out: F64, E: F64) -> None:
     """Per joint, the distal side ``tau_d`` and the sensor side ``tau_s`` weighted by their
     predicted variances into ``out`` (n,); ``ftb`` the measured wrench less the bias (sensor frame).
 
@@ -228,7 +228,8 @@ def fuse(st: F64, P: F64, n: int, c: F64, D: F64, A: F64, W: F64, ftb: F64, tau_
     - sensor: the F/T noise through the joint's lever arm ``sum_r sigma_r^2 A_ir^2``, the bias's
       uncertainty ``A_i P_bb A_i^T``, the proximal links' inertial torque ``h_i = A_i ftb - tau_s``
       with its model error ``(eps h_i)^2`` and its acceleration error ``E_i P_dd E_i^T``,
-      ``E_ik = A_i J_k - D_ik``; ``A`` (n, 6) the rows of ``A_tau``, ``W[k]`` ``J``'s columns.
+      ``E_ik = A_i J_k - D_ik``; ``A`` (n, 6) the rows of ``A_tau``, ``W[k]`` ``J``'s columns;
+    ``E``: n scratch (joint i's row).
 
     The weight of the sensor side is ``var_d / (var_d + var_s)``. Correlations between the two
     (both see the same acceleration estimate) are left out: a documented simplification.
@@ -244,15 +245,16 @@ def fuse(st: F64, P: F64, n: int, c: F64, D: F64, A: F64, W: F64, ftb: F64, tau_
             vs += a * a * (c[C_FORCE_VAR] if r < 3 else c[C_TORQUE_VAR])
         vs += eps2 * hi * hi
         for a in range(n):
-            da = D[i, a]
-            ea = -D[i, a]
+            e = -D[i, a]
             for r in range(6):
-                ea += A[i, r] * W[a, r]
+                e += A[i, r] * W[a, r]
+            E[a] = e
+        for a in range(n):
+            da = D[i, a]
+            ea = E[a]
             for b in range(n):
                 db = D[i, b]
-                eb = -D[i, b]
-                for r in range(6):
-                    eb += A[i, r] * W[b, r]
+                eb = E[b]
                 pab = P[n + a, n + b]
                 vd += da * pab * db
                 vs += ea * pab * eb
