@@ -87,6 +87,8 @@ class Dynamics:
         self.stuck = np.zeros(self.nj, dtype=bool)
         self._any_stuck = False
         self.tau_friction = np.zeros(self.nj)
+        self.contacts = None            # simulator.contact.Contacts: forces on the end effectors
+        self.steps = 0                  # steps taken (the contacts' clock)
         # step sizes as arrays: array * array is cheaper than scalar * array on tiny arrays, as
         # ndarray.dot is than @ (the same BLAS call, without matmul's dispatch)
         self._h2, self._h = np.full(model.nv, 0.5 * dt), np.full(model.nv, dt)
@@ -127,21 +129,41 @@ class Dynamics:
         aba, integrate, q_rate = pin.aba, pin.integrate, _q_rate
         h2, h = self._h2, self._h
         tau = np.concatenate((base_wrench, tau_motor))
-        tau[6:] += self._friction_torques(tau)
-
-        a1 = aba(model, self.data_start, q0, v0, tau)
-        th = h2 * v0
-        v2 = v0 + h2 * a1
-        k2q = q_rate(th, v2)
-        k2v = aba(model, data, integrate(model, q0, th), v2, tau)
-        th = h2 * k2q
-        v3 = v0 + h2 * k2v
-        k3q = q_rate(th, v3)
-        k3v = aba(model, data, integrate(model, q0, th), v3, tau)
-        th = h * k3q
-        v4 = v0 + h * k3v
-        k4q = q_rate(th, v4)
-        k4v = aba(model, data, integrate(model, q0, th), v4, tau)
+        fext = None
+        if self.contacts:
+            pin.forwardKinematics(model, self.data_start, q0)
+            fext = self.contacts.fext(self.steps * self.dt, self.data_start)
+        if fext is not None:            # held over the step, in the joints' axes
+            tau[6:] += self._friction_torques(tau, fext)
+            a1 = aba(model, self.data_start, q0, v0, tau, fext)
+            self._transmitted(fext)
+            th = h2 * v0
+            v2 = v0 + h2 * a1
+            k2q = q_rate(th, v2)
+            k2v = aba(model, data, integrate(model, q0, th), v2, tau, fext)
+            th = h2 * k2q
+            v3 = v0 + h2 * k2v
+            k3q = q_rate(th, v3)
+            k3v = aba(model, data, integrate(model, q0, th), v3, tau, fext)
+            th = h * k3q
+            v4 = v0 + h * k3v
+            k4q = q_rate(th, v4)
+            k4v = aba(model, data, integrate(model, q0, th), v4, tau, fext)
+        else:
+            tau[6:] += self._friction_torques(tau)
+            a1 = aba(model, self.data_start, q0, v0, tau)
+            th = h2 * v0
+            v2 = v0 + h2 * a1
+            k2q = q_rate(th, v2)
+            k2v = aba(model, data, integrate(model, q0, th), v2, tau)
+            th = h2 * k2q
+            v3 = v0 + h2 * k2v
+            k3q = q_rate(th, v3)
+            k3v = aba(model, data, integrate(model, q0, th), v3, tau)
+            th = h * k3q
+            v4 = v0 + h * k3v
+            k4q = q_rate(th, v4)
+            k4v = aba(model, data, integrate(model, q0, th), v4, tau)
         # (dt/6) (k1 + 2 k2 + 2 k3 + k4) for theta and v at once
         rates = self._weights.dot(np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v)))
         v = v0 + rates[1]
@@ -150,7 +172,21 @@ class Dynamics:
             raise self._divergence(tau, v)
         self.q = integrate(model, q0, rates[0])        # (indexing: unpacking a 2-row array costs more)
         self.v = v
+        self.steps += 1
         return a1
+
+    def _transmitted(self, fext: list) -> None:
+        """``data_start.f`` as RNEA gives it with the external forces: ABA leaves them out of the
+        force each joint transmits, the sum over its subtree of inertial minus external forces."""
+        model, d = self.model, self.data_start
+        for c in range(1, model.njoints):
+            fc = fext[c]
+            if not fc.vector.any():
+                continue
+            j = c
+            while j > 0:
+                d.f[j] -= d.oMi[j].actInv(d.oMi[c].act(fc))
+                j = model.parents[j]
 
     def _divergence(self, tau: np.ndarray, v: np.ndarray) -> DivergenceError:
         """What went non-finite: the inputs if they were (the cause), else the velocities."""
@@ -188,8 +224,9 @@ class Dynamics:
         return out
 
     # -- friction ---------------------------------------------------------------------------
-    def _friction_torques(self, tau_applied: np.ndarray) -> np.ndarray:
-        """Friction torques held over the next step, given all applied generalized forces.
+    def _friction_torques(self, tau_applied: np.ndarray, fext: list | None = None) -> np.ndarray:
+        """Friction torques held over the next step, given all applied generalized forces and the
+        external forces ``fext`` (per joint, local frames; None: none).
 
         Sets ``tau_friction`` and ``stuck``. ``stuck`` is replaced, never written in place, when
         the set of stuck joints changes (the simulation keeps references to it as truth rows).
@@ -211,6 +248,9 @@ class Dynamics:
             diag, reach = Minv.diagonal().tolist(), self._reach
             S = [i for i, v in enumerate(vl) if abs(v) <= static[i] * diag[i + 6] * reach and static[i] > 0]
             if S:
+                if fext is not None:      # their generalized forces: -rnea(q, 0, 0, fext) in zero gravity
+                    z = np.zeros(self.model.nv)
+                    tau_applied = tau_applied - pin.rnea(self.model, self.data, self.q, z, z, fext)
                 tau_f, S = self._stick(Minv, tau_applied, vl, S)
         if S:
             stuck = np.zeros(self.nj, dtype=bool)

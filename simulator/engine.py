@@ -34,6 +34,7 @@ import pinocchio as pin
 import robot_description
 from robot_description import Robot
 
+from .contact import Contacts
 from .controller import Controller, Target, pregrasp_ik
 from .dynamics import DivergenceError, Dynamics, Friction
 from .errors import SimulatorError
@@ -97,6 +98,7 @@ class Simulation:
 
         self.friction_enabled = friction
         self.dyn = Dynamics(r.model, friction_from(r, cfg.friction, friction), DT_S, r.joint_names)
+        self.dyn.contacts = Contacts(r, sc.data.get("contact", []))     # forces on the end effectors
         self._base_coulomb = self.dyn.friction.coulomb_nm.copy()
         q = r.neutral()
         init = cfg.controller.initial_q_deg

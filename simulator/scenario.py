@@ -108,7 +108,7 @@ def _merge(base: dict, user: dict, where: str) -> dict:
     out = copy.deepcopy(base)
     for key, value in user.items():
         dotted = f"{where}{key}"
-        if key == "degrade" and not where:
+        if key in ("degrade", "contact") and not where:
             out[key] = value
             continue
         if dotted in ARRAYS_OF_TABLES:
