@@ -28,13 +28,14 @@ def paper():
     return EstimatorModel.from_robot(rd.load("paper_robot")), ThrusterLayout.named()
 
 
-def stream(model, layout, *, steps, seed, fault=None):
+def stream(model, layout, *, steps, seed, fault=None, noise=1.0):
     """Events as the estimator feeds its filter (a STEP per 1 kHz step, an IMU sample every
     second step) and the truth: each valve's wrench ``W`` (off nominal by a few %), valves
     pulsing (~9 % duty each), arm reactions, Euler-integrated rates, IMU interval means + the
     settings' noise. ``fault``: ``(thruster, kind, onset step, factor[, end step])``, kind
     ``stuck_open`` (the valve thrusts whatever its command), ``stuck_closed`` (never), ``loss``
-    (its wrench times ``factor``); the commands stay what the flight software asked."""
+    (its wrench times ``factor``); the commands stay what the flight software asked. ``noise``:
+    the IMU's noise, times the settings'."""
     rng = np.random.default_rng(seed)
     n = layout.n
     Is, Is_inv, m, r, R = model.inertia_s, np.linalg.inv(model.inertia_s), model.mass_s, model.r_imu, model.R_imu
@@ -72,8 +73,8 @@ def stream(model, layout, *, steps, seed, fault=None):
         w_sum += w
         add(tk.STEP, t, arm, sum(1 << int(i) for i in np.flatnonzero(on)))
         if s % IMU_STEPS == 0:
-            add(tk.IMU, t, accel=R.T @ (acc_sum / IMU_STEPS) + rng.normal(0, 3.1e-3, 3),
-                rate=R.T @ (w_sum / IMU_STEPS) + rng.normal(0, 2.9e-5, 3))
+            add(tk.IMU, t, accel=R.T @ (acc_sum / IMU_STEPS) + rng.normal(0, noise * 3.1e-3, 3),
+                rate=R.T @ (w_sum / IMU_STEPS) + rng.normal(0, noise * 2.9e-5, 3))
             acc_sum, w_sum = np.zeros(3), np.zeros(3)
     out = {k: np.ascontiguousarray(np.array(v, dtype=np.int64 if k in ("kind", "t_ns", "masks") else float))
            for k, v in ev.items()}
@@ -153,6 +154,27 @@ def test_healthy_stream_raises_nothing(paper):
     imu = ev["kind"] == tk.IMU
     assert stat[imu, 0].max() < s.h_short / 4 and stat[imu, 2].max() < s.h_long
     assert kf.updates >= 0.9 * imu.sum()           # the filter learnt (was seldom held)
+
+
+def test_a_noisier_imu_is_measured_and_neither_gated_nor_held(paper):
+    # bsc demo's noise sweep x4: every normalised innovation and statistic 16 times larger; the
+    # gate held most healthy samples and the suspicion held the filter, until the detector took
+    # the innovation's measured noise level into account
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=8000, seed=4, noise=4.0)
+    events, _, kf, st = detect(model, layout, ev)
+    assert len(events) == 0
+    assert 12.0 <= fdi.noise_level(st) <= 20.0
+    assert kf.updates >= 0.9 * (ev["kind"] == tk.IMU).sum()
+
+
+def test_a_stuck_valve_is_named_through_a_noisier_imu(paper):
+    model, layout = paper
+    onset = 4000
+    ev, _ = stream(model, layout, steps=7000, seed=15, fault=(5, "stuck_open", onset, 1.0), noise=4.0)
+    events, _, _, _ = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(5, fdi.STUCK_OPEN)]
+    assert 0 < (events[0][0] - onset * STEP_NS) / 1e9 <= 0.5
 
 
 @pytest.mark.parametrize("thruster, kind, factor, want", [
