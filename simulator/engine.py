@@ -8,7 +8,11 @@ the end and returns the :class:`~simulator.truth.Trace`. The sensor firmware
 Drive commands from outside (an inner loop closed through the buses, docs/control.md):
 ``Simulation(..., external_drives=True)`` and :meth:`Simulation.command_drives`; the flight
 software stays the outer loop (its command is the trace's ``tau_cmd``, the desired torque) and
-the drives apply what they were last given.
+the drives apply what they were last given. Valve commands likewise:
+``Simulation(..., external_thrusters=True)`` and :meth:`Simulation.command_valves`; the flight
+software still computes its demanded wrench, allocates and modulates it (the trace's
+``thr_demand`` and ``thr_cmd``, what the spacecraft bus carries as the commanded wrench), but
+each valve follows the command given for that millisecond, when there is one.
 
 How the loop is organised (for speed; the result does not depend on it):
 
@@ -51,6 +55,11 @@ class DriveCommandError(SimulatorError, ValueError):
     """A drive command the simulated robot cannot take (wrong size, not finite, drives not external)."""
 
 
+class ValveCommandError(SimulatorError, ValueError):
+    """A valve command the simulated robot cannot take (wrong size, not 0/1, a time off the step
+    grid, valves not external)."""
+
+
 @dataclass
 class Readings:
     """What the devices report during one step, ``None`` where a device does not sample."""
@@ -63,7 +72,8 @@ class Readings:
     imu: tuple | None = None               # (quat_wxyz, rate, accel, saturated) at the IMU rate
     torque_cmd: np.ndarray | None = None   # (n,) N m, at the controller rate
     thruster_cmd: np.ndarray | None = None  # (6,) body wrench about C, at the base rate
-    valves: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))   # commanded (PWPFM), not actual
+    # commanded (the flight software's PWPFM, or the external command applied), not actual
+    valves: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def friction_from(robot: Robot, cfg, enabled: bool = True) -> Friction:
@@ -87,7 +97,8 @@ SENSE_BLOCK = 1024      # steps of raw truth run through the sensor models at on
 
 class Simulation:
     def __init__(self, scenario: Scenario, robot: Robot | None = None, friction: bool = True,
-                 external_drives: bool = False, command_limit: float = 1.0):
+                 external_drives: bool = False, command_limit: float = 1.0, external_thrusters: bool = False,
+                 thrust_limit: float = 1.0):
         self.scenario = sc = scenario
         cfg = sc.cfg
         self.robot = robot or robot_description.load(sc.robot)
@@ -118,7 +129,9 @@ class Simulation:
         self.base_every = max(1, round(1.0 / (cfg.controller.base_rate_hz * DT_S)))
 
         self.layout = Layout.from_config(cfg.thrusters)
-        self.alloc = Allocator(self.layout, cfg.thrusters.keepout_deg)
+        # thrust_limit < 1: the flight software allocates at most that fraction of each thruster's
+        # maximum, leaving an inner loop (external valve commands) thrust to correct with
+        self.alloc = Allocator(self.layout, cfg.thrusters.keepout_deg, limit=thrust_limit)
         pw = cfg.thrusters.pwpfm
         self.pwpfm = PWPFM(self.layout.n, DT_S, pw.km, pw.tau_s, pw.u_on, pw.u_off, pw.min_on_s)
         self.thr_err = ThrusterErrors(self.layout, cfg.thrusters, rng[0], DT_S)
@@ -164,6 +177,17 @@ class Simulation:
         self._ref = self.ctrl.desired(np.arange(0, self.n_steps, self.ctrl_every) * DT_S)
         self._ref_flat = tuple(x.reshape(len(x), -1) for x in self._ref)
         self._thr_degrade = any(d["kind"] in ("thruster_loss", "thruster_stuck") for d in self._degrade)
+        # external valve commands (thrusters compensated through the gateway): per step, the valves
+        # commanded for that millisecond by command_valves(), else the flight software's
+        self.external_thrusters = external_thrusters
+        self.allowed = np.ones(self.layout.n, dtype=bool)    # the flight software's keep-out mask, this period
+        self._valve_cmd: dict[int, np.ndarray] = {}          # step -> commanded valves (n,) bool
+        self.valves_late = 0                                 # valve commands for steps already run: not applied
+        if external_thrusters:
+            self.valves_applied = np.zeros((self.n_steps, self.layout.n), dtype=bool)
+            self.valves_external = np.zeros(self.n_steps, dtype=bool)
+        else:
+            self.valves_applied = self.valves_external = None
 
     @property
     def ee(self) -> np.ndarray:
@@ -260,8 +284,9 @@ class Simulation:
             if self._drive_cmd is not None:
                 tau = self._drive_cmd if self._drive_use is None else np.where(self._drive_use, self._drive_cmd, tau)
             self.drive_applied[k] = tau
+        wrench = self._wrench_chunk[j] if not self.external_thrusters else self._valves_step(k, j)
         try:
-            a = dyn.step(self._wrench_chunk[j], tau)
+            a = dyn.step(wrench, tau)
         except DivergenceError as exc:
             raise exc.at((k + 1) * DT_S) from None
 
@@ -284,21 +309,41 @@ class Simulation:
         allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
         self.u_cmd = self.alloc.allocate(self.demand, allowed)
         self.wrench_cmd = self.alloc.B.dot(self.u_cmd)
-        # the thruster chain until the next allocation depends on nothing else
+        self.allowed = allowed
+        # the thruster chain until the next allocation depends on nothing else (unless the valves
+        # take external commands: then _valves_step runs it step by step)
         commanded = self.pwpfm.run(self.u_cmd / self.layout.max_n, be)
-        factor = stuck = None
-        if self._thr_degrade:
-            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
-        valves, thrust = self.thr_err.run(commanded, factor, stuck)
-        self._chunk_valves = commanded
-        self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
         hold = slice(k, k + be)
         n = len(A["valves"][hold])
         A["thr_demand"][hold] = self.demand
         A["thr_cmd"][hold] = self.wrench_cmd
+        self._chunk_valves = commanded
+        if self.external_thrusters:
+            return
+        factor = stuck = None
+        if self._thr_degrade:
+            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
+        valves, thrust = self.thr_err.run(commanded, factor, stuck)
+        self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
         A["valves"][hold] = valves[:n]
         A["thrust"][hold] = thrust[:n]
         A["thr_act"][hold] = self._wrench_chunk[:n]
+
+    def _valves_step(self, k: int, j: int) -> np.ndarray:
+        """External valves: the thruster chain of step k alone (its commanded valves: the external
+        command for this millisecond, else the flight software's); returns the actual wrench."""
+        ext = self._valve_cmd.pop(k, None)
+        commanded = self._chunk_valves[j] if ext is None else ext
+        self.valves_applied[k] = commanded
+        self.valves_external[k] = ext is not None
+        factor = stuck = None
+        if self._thr_degrade:
+            factor, stuck = self._thruster_degradations(np.array([k * DT_S]))
+        valves, thrust = self.thr_err.run(commanded[None, :], factor, stuck)
+        wrench = thrust[0].dot(self.thr_err.B_actual.T)
+        A = self.trace.arrays
+        A["valves"][k], A["thrust"][k], A["thr_act"][k] = valves[0], thrust[0], wrench
+        return wrench
 
     def _sense(self, k1: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor models and derived truth for the recorded rows [_sensed, k1).
@@ -384,6 +429,41 @@ class Simulation:
         self._drive_cmd = np.clip(tau, -self.robot.effort_limit, self.robot.effort_limit)
         self._drive_use = use
 
+    def command_valves(self, valves, t_ns: int) -> None:
+        """The valves' commands for the steps from sensor time ``t_ns`` on (``external_thrusters=True``
+        only): ``valves`` (n,) or (L, n) of 0/1 (bool), one row per millisecond, thruster order of the
+        layout; each row replaces what an earlier call gave for its step. A row for a step already
+        run is not applied (counted in :attr:`valves_late`): a valve command is good for its own
+        millisecond only. A step without a command gets the flight software's (PWPFM) valves.
+        The flight software still demands, allocates and modulates (``thr_demand``, ``thr_cmd``,
+        the commanded wrench on the spacecraft bus); the trace's ``valves``, ``thrust`` and
+        ``thr_act`` are what the commanded valves really did (a stuck valve stays stuck), and
+        :attr:`valves_applied` / :attr:`valves_external` keep per step the commanded valves and
+        whether they were the external ones; :attr:`allowed` is the flight software's keep-out
+        mask of the current base period (thrusters whose plume would reach the target: False)."""
+        if not self.external_thrusters:
+            raise ValveCommandError("command_valves: this simulation's valves take the flight software's "
+                                    "commands (create it with external_thrusters=True)")
+        v = np.asarray(valves)
+        m = self.layout.n
+        rows = v[None, :] if v.ndim == 1 else v
+        if rows.ndim != 2 or rows.shape[1] != m or rows.shape[0] < 1:
+            raise ValveCommandError(f"command_valves: expected {m} valve states per step, (n,) or (L, n), "
+                                    f"got shape {v.shape}")
+        if rows.dtype != bool:
+            if not (np.issubdtype(rows.dtype, np.number) and np.all(np.isin(rows, (0, 1)))):
+                raise ValveCommandError("command_valves: valve states must be 0 or 1 (closed, open)")
+            rows = rows.astype(bool)
+        if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)) or t_ns < 0 or t_ns % DT_NS:
+            raise ValveCommandError(f"command_valves: t_ns must be a step time, a multiple of {DT_NS} ns >= 0, "
+                                    f"got {t_ns!r}")
+        k0 = int(t_ns) // DT_NS
+        for i, row in enumerate(rows):
+            if k0 + i < self.k:
+                self.valves_late += 1
+            elif k0 + i < self.n_steps:
+                self._valve_cmd[k0 + i] = row.copy()
+
     # ------------------------------------------------------------------------------------------
     def step(self) -> Readings:
         """Advance one millisecond; the readings are those sampled at the start of the step."""
@@ -399,7 +479,8 @@ class Simulation:
                         joint_angle=A["enc_angle"][k].copy(), joint_rate=A["enc_rate"][k].copy(), imu=imu,
                         torque_cmd=self.tau_cmd if k % self.ctrl_every == 0 else None,
                         thruster_cmd=self.wrench_cmd if k % self.base_every == 0 else None,
-                        valves=self._chunk_valves[k % self.base_every].copy())
+                        valves=(self._chunk_valves[k % self.base_every] if self.valves_applied is None
+                                else self.valves_applied[k]).copy())
 
     def run(self, progress: bool = False) -> Trace:
         from .progress import SimProgress

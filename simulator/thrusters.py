@@ -35,13 +35,17 @@ class Allocator:
     """Demanded body wrench -> thrust per thruster in [0, max], plumes kept off the target.
 
     Non-negative least squares on ``[B; eps I] u = [w; 0]`` over the allowed thrusters, then
-    scaled down as a whole if any thruster would exceed its maximum (keeps the wrench's
-    direction). A thruster is disallowed when its exhaust (minus its force direction) points
-    within ``keepout_deg`` + the target's angular radius of the line to the target centre.
+    scaled down as a whole if any thruster would exceed ``limit`` of its maximum (keeps the
+    wrench's direction; ``limit`` < 1 leaves an inner loop thrust to correct with). A thruster
+    is disallowed when its exhaust (minus its force direction) points within ``keepout_deg`` +
+    the target's angular radius of the line to the target centre.
     """
 
-    def __init__(self, layout: Layout, keepout_deg: float, eps: float = 1e-3):
+    def __init__(self, layout: Layout, keepout_deg: float, eps: float = 1e-3, limit: float = 1.0):
+        if not (isinstance(limit, (int, float)) and 0 < limit <= 1):
+            raise ValueError(f"thrust limit must be a fraction in (0, 1], got {limit!r}")
         self.layout = layout
+        self.limit = float(limit)
         self.B = layout.B
         self.keepout = math.radians(keepout_deg)
         self.eps = eps
@@ -76,8 +80,8 @@ class Allocator:
             if info == 3:
                 raise RuntimeError("Maximum number of iterations reached.")   # as nnls() does
         peak = x.max()
-        if peak > 1.0:
-            x /= peak
+        if peak > self.limit:
+            x /= peak / self.limit
         u[idx] = x * scale
         return u
 
