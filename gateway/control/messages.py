@@ -1,5 +1,8 @@
 """What the compensator publishes: the joint drives' command (its zenoh keys are in :mod:`gateway.keys`).
 
+The thruster loop's records, :class:`ValveWrenches` (in: the learned per-valve wrenches) and
+:class:`ThrusterValves` (out: one step's valves), are not on zenoh yet (docs/control.md).
+
 ``bsc/<robot>/commands/drives/<arm>`` (``keys.drive_command``): a :class:`DriveCommand` per arm,
 the command the drives should apply. Only the controller role may publish under
 ``bsc/<robot>/commands/**`` (deploy/zenoh/router.json5); the gateway never does.
@@ -42,6 +45,38 @@ class DriveCommand:
     torque_nm: tuple[float, ...]
     desired_nm: tuple[float, ...]
     correction_nm: tuple[float, ...]
+    closed: bool
+    flags: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ValveWrenches:
+    """The gateway's learned per-valve wrenches at sensor time ``t_ns`` (the thruster filter's
+    state, :mod:`gateway.estimator.thrusters`): ``wrench`` the n x 6 numbers, valve by valve, of
+    what each valve exerts while open ``[force (N); moment about C (N m)]``, body frame;
+    ``force_sigma_n`` (n,) each one's force uncertainty (1 sigma, N: the root of its force
+    covariance's trace); ``good`` and ``flags`` those of the thruster efforts of the same epoch.
+    What the thruster loop (:mod:`gateway.control.thrusters`) allocates with."""
+
+    t_ns: int
+    wrench: tuple[float, ...]
+    force_sigma_n: tuple[float, ...]
+    good: bool
+    flags: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ThrusterValves:
+    """The thruster loop's valve command for the step at sensor time ``t_ns``: ``valves`` bit i =
+    thruster i open; ``duty`` (n,) the allocation it times (fractions of full opening);
+    ``closed``: False when the allocation used the NOMINAL wrenches (``flags`` says why:
+    ``no-estimate``, ``stale:efforts``, ``estimate:not-good (<its flags>)``, ``disabled``; closed:
+    ``limited:rate``, ``limited:magnitude``); ``saturated``: the commanded wrench needed more than
+    full opening (scaled down, direction kept); ``fault:thruster<i>``: thruster i excluded."""
+
+    t_ns: int
+    valves: int
+    duty: tuple[float, ...]
     closed: bool
     flags: tuple[str, ...] = ()
 
