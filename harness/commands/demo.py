@@ -252,20 +252,22 @@ def run(args: argparse.Namespace) -> int:
 
 def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None) -> tuple[dict, list[str]]:
     """The closed-loop study (harness.closed_loop) on the scenario as it is, then with the outer
-    loop's commands limited to HEADROOM of the torque limits (the drives keep room to cancel
-    the friction); figures for both. ``realtime``: the scenario argument, to also run each
+    loop's commands limited to HEADROOM of the torque limits and THRUST_HEADROOM of the thrust
+    (the drives keep room to cancel the friction, the valves to make up weak thrusters); figures
+    for both. ``realtime``: the scenario argument, to also run each
     compensated case in real time across processes. Returns (report.json's closed_loop block,
     targets missed by the first, lockstep)."""
     import tempfile
 
     from harness import closed_loop
 
-    cases = (("as configured", 1.0, "closed_loop"),
-             (f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits", closed_loop.HEADROOM,
-              "closed_loop_headroom"))
+    cases = (("as configured", 1.0, 1.0, "closed_loop"),
+             (f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits and "
+              f"{100 * closed_loop.THRUST_HEADROOM:.0f} % of the thrust", closed_loop.HEADROOM,
+              closed_loop.THRUST_HEADROOM, "closed_loop_headroom"))
     found = []
-    for what, limit, name in cases:
-        study, traces = closed_loop.closed_loop_study(sc, command_limit=limit, progress=progress)
+    for what, limit, thrust, name in cases:
+        study, traces = closed_loop.closed_loop_study(sc, command_limit=limit, thrust_limit=thrust, progress=progress)
         if realtime is not None:
             with tempfile.TemporaryDirectory(prefix="bsc-closed-loop-") as tmp:
                 study["realtime"] = closed_loop.realtime_study(realtime, sc, study, traces, tmp, command_limit=limit)

@@ -46,7 +46,23 @@ def test_the_report_has_the_issues_keys(study):
         assert set(out["ee_rms_error_m"][case]) == {"arm0", "arm1", "overall"}
     for case in ("open_loop", "compensated"):
         assert out["joint_torque_rms_error_nm"][case]["overall"] >= 0
-        assert set(out["thruster_wrench_rms_error"][case]) == {"force_n", "moment_nm"}
+        assert set(out["thruster_wrench_rms_error"][case]) == {"force_n", "moment_nm", "per_axis"}
+        assert out["thruster_wrench_rms_error_1khz"][case]["force_n"] > out["thruster_wrench_rms_error"][case]["force_n"]
+    assert set(out["thruster_wrench_error_cut"]) == {"force_n", "moment_nm"}
+
+
+def test_the_thruster_loop_cuts_the_wrench_error_through_the_gateway(study):
+    # the valves under the learned wrenches: the band-limited error of actual vs commanded wrench
+    # falls against open loop, and against the same valve timing on the nominal wrenches (what the
+    # learned wrenches add); the loop closed at once and stayed closed, every step's valves external
+    out, _ = study
+    w, cut = out["thruster_wrench_rms_error"], out["thruster_wrench_error_cut"]
+    assert cut["force_n"] > 0.2 and cut["moment_nm"] > 0.2          # 2 s: 28 % and 37 % (2026-11-26)
+    for k in ("force_n", "moment_nm"):
+        assert w["compensated"][k] < w["nominal_wrenches"][k]
+    loop = out["thruster_loop"]
+    assert [t["state"] for t in loop["transitions"]] == ["closed"] and loop["transitions"][0]["t_s"] < 0.02
+    assert loop["late"] == 0 and loop["steps_external"] == loop["commands"]["closed"] + loop["commands"]["open"]
 
 
 def test_the_closed_loop_is_deterministic(capture):
@@ -91,6 +107,23 @@ def test_a_silent_sensor_opens_the_loops_within_one_step_and_they_resume_when_es
     k = np.flatnonzero(during)
     np.testing.assert_allclose(info["applied"][k], tr.arrays["tau_cmd"][k - 1], rtol=0, atol=0.025 + 1e-9)
     assert closed[t > 0.85].all()
+
+
+def test_a_silent_imu_puts_the_thrusters_on_the_nominal_allocation_within_one_step_and_back(capture):
+    # the IMU goes silent for 100 ms: the thruster efforts go stale, the thruster loop takes the
+    # nominal wrenches from the first valves after the last good estimate is stale_s old (20 ms),
+    # and closes again once estimates are good
+    sc = capture.replace(duration_s=1.0)
+    tr, info = closed_loop.run_compensated(sc, faults=Faults(silent=(("imu", 0.5, 0.1),)))
+    thr = info["thrusters"]
+    ev = [(e["state"], e["t_s"]) for e in thr["transitions"]]
+    assert [s for s, _ in ev] == ["closed", "open", "closed"]
+    assert 0.5 < ev[1][1] <= 0.5 + 0.020 + 0.003                 # the last good estimate is at most 2 ms before
+    assert thr["transitions"][1]["reason"] == "stale:efforts" or thr["transitions"][1]["reason"].startswith(
+        "estimate:not-good")
+    t = tr.arrays["t_s"]
+    assert not thr["closed"][(t > ev[1][1] + 0.0015) & (t < 0.6)].any()
+    assert thr["closed"][t > ev[2][1] + 0.0015].all()
 
 
 def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(capture):
