@@ -10,11 +10,13 @@ flight software does with the nominal ones:
 
 - **allocation**: duty cycles ``u`` in [0, 1] with ``sum_i u_i W_i = w`` (non-negative least
   squares on ``[W^T; eps I] u = [w; 0]`` over the usable valves, scaled down as a whole when a duty
-  would exceed 1: the direction of ``w`` kept, flag ``saturated``). A valve that the allocation
-  on the nominal wrenches would not fire either and that would run below ``min_duty`` is left
-  closed: with the minimum on-time, such a valve pulses slower than the band the spacecraft
-  responds to (4 ms pulses at 8 % duty: 20 Hz), and its sparse 100 N pulses add more error there
-  than the few newtons of misalignment they would correct (measured, docs/control.md);
+  would exceed 1, the least squares bounded to [0, 1] instead: the smallest error in ``w``, flag
+  ``saturated``; the nominal allocation scales down as the flight software does, keeping the
+  direction). A valve that the allocation on the nominal wrenches would not fire either and that
+  would run below ``min_duty`` is left closed: with the minimum on-time, such a valve pulses far
+  slower than the band the spacecraft responds to (4 ms pulses at 2 % duty: 5 Hz), and its
+  sparse 100 N pulses add more error there than the newton or two of misalignment they would
+  correct (measured, docs/control.md);
 - **valve timing**: per valve a first-order sigma-delta modulator on its duty, with the minimum
   on-time of the valves (the minimum impulse bit): the accumulated impulse of each valve stays
   within one minimum pulse of ``u_i W_i`` integrated, so the delivered wrench follows ``w`` in
@@ -47,7 +49,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
+from scipy.optimize import lsq_linear, nnls
 
 from drivers.samples import ThrusterCommand
 from gateway.control.joints import LoopEvent
@@ -70,7 +72,7 @@ class ThrusterLoopSettings:
     stale_s: float = 0.02           # no good estimate this recent behind a valve command: nominal allocation
     resume_good: int = 5            # good estimates in a row to close the loop again
     eps: float = 1e-3               # the allocation's regularisation (as the flight software's)
-    min_duty: float = 0.08          # closed loop: a valve the nominal allocation also leaves below this: not fired
+    min_duty: float = 0.02          # closed loop: a valve the nominal allocation also leaves below this: not fired
 
     def __post_init__(self):
         if not (isinstance(self.min_duty, (int, float)) and not isinstance(self.min_duty, bool)
@@ -258,7 +260,7 @@ class ThrusterCompensator:
             usable[j] = False
         key = (id(self._demand), self.closed, usable.tobytes(), W.tobytes())
         if key != self._alloc_key:
-            self._duty, self._saturated = allocate(W, w, usable, s.eps)
+            self._duty, self._saturated = allocate(W, w, usable, s.eps, bounded=self.closed)
             if self.closed:
                 # a valve the nominal allocation would not fire either, at a duty so low that its
                 # pulses come slower than the band the spacecraft responds to, stays closed: its
@@ -292,10 +294,13 @@ class ThrusterCompensator:
         return out
 
 
-def allocate(W: np.ndarray, wrench: np.ndarray, usable: np.ndarray, eps: float = 1e-3) -> tuple[np.ndarray, bool]:
+def allocate(W: np.ndarray, wrench: np.ndarray, usable: np.ndarray, eps: float = 1e-3,
+             bounded: bool = False) -> tuple[np.ndarray, bool]:
     """Duty cycles (n,) in [0, 1] of valves with wrenches ``W`` (n, 6) (full opening) for the body
     wrench ``wrench`` (6,): non-negative least squares on ``[W^T; eps I] u = [wrench; 0]`` over the
-    ``usable`` valves, scaled down as a whole if a duty exceeds 1. Returns (duties, scaled down)."""
+    ``usable`` valves; when a duty would exceed 1 (the wrench is beyond the valves), scaled down as
+    a whole (the flight software's way: the wrench's direction kept) or, ``bounded``, the least
+    squares bounded to [0, 1] (the smallest error in the wrench). Returns (duties, saturated)."""
     u = np.zeros(len(W))
     idx = np.flatnonzero(usable)
     if idx.size == 0 or not np.any(wrench):
@@ -305,7 +310,10 @@ def allocate(W: np.ndarray, wrench: np.ndarray, usable: np.ndarray, eps: float =
     x, _ = nnls(A, b, maxiter=50 * idx.size)
     peak = float(x.max())
     if peak > 1.0:
-        x /= peak
+        if bounded:
+            x = lsq_linear(A, b, bounds=(0.0, 1.0), method="bvls").x
+        else:
+            x /= peak
     u[idx] = x
     return u, peak > 1.0
 

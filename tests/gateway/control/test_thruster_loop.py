@@ -211,3 +211,30 @@ def test_bad_inputs_are_refused():
         c.demand(0, WRENCH, np.ones(3, dtype=bool))
     with pytest.raises(ControlError, match="nominal wrenches"):
         ThrusterCompensator(np.zeros((3, 5)), np.ones(3), lever_m=1.0)
+
+
+def test_a_wrench_beyond_the_valves_gets_the_smallest_error_closed_loop_and_the_flight_softwares_scaling_open():
+    big = WRENCH * 20.0
+    ok = np.ones(N, dtype=bool)
+    scaled, sat = allocate(W_TRUE, big, ok)
+    bounded, sat_b = allocate(W_TRUE, big, ok, bounded=True)
+    assert sat and sat_b and bounded.min() >= 0 and bounded.max() <= 1 + 1e-12
+    assert np.linalg.norm(bounded @ W_TRUE - big) < np.linalg.norm(scaled @ W_TRUE - big)
+    c = comp()
+    out, _ = run(c, 30, wrench=big)
+    assert out[-1].closed and "saturated" in out[-1].flags
+    np.testing.assert_allclose(out[-1].duty, allocate(c.used, big, ok, bounded=True)[0], atol=1e-9)
+    c.estimate(learned(99 * MS, good=False))
+    assert c.valves(100 * MS).duty == tuple(allocate(NOMINAL, big, ok)[0].tolist())
+
+
+def test_valves_the_nominal_allocation_leaves_idle_are_not_pulsed_for_small_corrections():
+    ok = np.ones(N, dtype=bool)
+    exact, _ = allocate(W_TRUE, WRENCH, ok)
+    nominal, _ = allocate(NOMINAL, WRENCH, ok)
+    small = (exact > 0) & (exact < 0.02) & (nominal < 0.02)
+    assert small.any()                                # the exact allocation would pulse them
+    out, _ = run(comp(settings=ThrusterLoopSettings()), 300)
+    assert out[-1].closed
+    assert all(out[-1].duty[i] == 0.0 for i in np.flatnonzero(small))
+    assert not any(bits(v)[small].any() for v in out[10:])
