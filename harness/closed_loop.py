@@ -402,6 +402,46 @@ def plot_joint_torques(traces: dict, study: dict, path, title: str):
     return path
 
 
+def plot_thruster_wrench(traces: dict, study: dict, path, title: str):
+    """Per axis: the commanded thruster wrench (the flight software's allocation) and the actual
+    one band-limited to 20 Hz, open loop and compensated; dated."""
+    import datetime
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from harness.demo import lowpass
+
+    axes = ("fx [N]", "fy [N]", "fz [N]", "mx [N m]", "my [N m]", "mz [N m]")
+    fig, axs = plt.subplots(3, 2, figsize=(13, 8.5), sharex=True, squeeze=False)
+    w = study["thruster_wrench_rms_error"]
+    for i, name in enumerate(axes):
+        ax = axs[i % 3, i // 3]
+        for case in ("open_loop", "compensated"):
+            tr = traces[case]
+            label, color, _ = CASE_STYLE[case]
+            ax.plot(tr["t_s"], tr["thr_cmd"][:, i], color=color, ls="--", lw=0.9, label=f"commanded, {label}")
+            ax.plot(tr["t_s"], lowpass(tr["thr_act"][:, i]), color=color, lw=1.0, alpha=0.8,
+                    label=f"actual ({w['band_hz']:g} Hz), {label}")
+        ax.set_title(f"{name.split()[0]}: RMS actual - commanded {w['open_loop']['per_axis'][i]:.2f} -> "
+                     f"{w['compensated']['per_axis'][i]:.2f}", fontsize=9)
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    for c in range(2):
+        axs[-1, c].set_xlabel("time [s]")
+    handles, labels = axs[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=4, fontsize=8, frameon=False, bbox_to_anchor=(0.5, 0.965))
+    cut = study["thruster_wrench_error_cut"]
+    fig.suptitle(f"Thruster wrench, commanded vs actual: {title}; error cut force {100 * cut['force_n']:.1f} %, "
+                 f"moment {100 * cut['moment_nm']:.1f} % (lockstep, {datetime.date.today().isoformat()})",
+                 fontsize=10, y=0.995)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 # --- real time, across processes -------------------------------------------------------------
 
 class DriveInbox:

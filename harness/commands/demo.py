@@ -18,9 +18,10 @@ nominal simulation, frame for frame) to a pipeline whose model is 5 % off
 
 ``--closed-loop`` then closes the inner loop (:mod:`harness.closed_loop`, docs/control.md): the
 scenario without friction, with friction open loop, and with friction compensated through the
-gateway (lockstep), once as configured and once with the outer loop limited to 70 % of the torque
-limits; ``report.json`` ``closed_loop`` (``closed_loop.headroom``) and the figures
-``closed_loop_ee_error.png``, ``closed_loop_joint_torques.png`` (``closed_loop_headroom_*.png``).
+gateway (lockstep; joints and thrusters), once as configured and once with the outer loop limited
+to 70 % of the torque limits and 90 % of the thrust; ``report.json`` ``closed_loop``
+(``closed_loop.headroom``) and the figures ``closed_loop_ee_error.png``,
+``closed_loop_joint_torques.png``, ``closed_loop_thruster_wrench.png`` (``closed_loop_headroom_*.png``).
 Its targets (the first case) count in the exit status.
 
 Exit status: 0 when every judged figure meets its target, 3 (``EXIT_TARGETS_MISSED``) when one
@@ -232,7 +233,8 @@ def run(args: argparse.Namespace) -> int:
         print()
         print(closed_loop.format_table(report["closed_loop"], "the scenario as it is"))
         print()
-        limited = f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits"
+        limited = (f"outer loop limited to {100 * closed_loop.HEADROOM:.0f} % of the torque limits and "
+                   f"{100 * closed_loop.THRUST_HEADROOM:.0f} % of the thrust")
         print(closed_loop.format_table(report["closed_loop"]["headroom"], limited))
     status = exit_status(acc, args.report_only)
     if closed_missed and not args.report_only:
@@ -273,6 +275,7 @@ def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None) -> 
                 study["realtime"] = closed_loop.realtime_study(realtime, sc, study, traces, tmp, command_limit=limit)
         closed_loop.plot_ee_error(traces, study, out / f"{name}_ee_error.png", f"{sc.name}, {what}")
         closed_loop.plot_joint_torques(traces, study, out / f"{name}_joint_torques.png", f"{sc.name}, {what}")
+        closed_loop.plot_thruster_wrench(traces, study, out / f"{name}_thruster_wrench.png", f"{sc.name}, {what}")
         found.append(study)
         del traces
     study, room = found
