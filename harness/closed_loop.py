@@ -634,10 +634,20 @@ def realtime_study(scenario_arg: str, scenario, study: dict, traces: dict, workd
     the run's trace to ``traces`` as ``realtime``."""
     trace, summary = run_realtime(scenario_arg, workdir, duration_s=scenario.duration_s,
                                   command_limit=command_limit, say=say)
+    if study.get("thrust_limit_fraction", 1.0) != 1.0:
+        # the real-time robot allocates up to full thrust (its valves keep the flight software's):
+        # its baselines are the lockstep runs with full thrust, not the study's
+        from simulator.engine import Simulation
+
+        base = {"no_friction": Simulation(scenario, friction=False, command_limit=command_limit).run(),
+                "open_loop": Simulation(scenario, command_limit=command_limit).run()}
+        study = {"ee_rms_error_m": {k: ee_rms(tr) for k, tr in base.items()},
+                 "joint_torque_rms_error_nm": {"open_loop": torque_rms(base["open_loop"])},
+                 "thruster_wrench_rms_error": {"open_loop": wrench_rms(base["open_loop"])}}
     ee = {"no_friction": study["ee_rms_error_m"]["no_friction"], "open_loop": study["ee_rms_error_m"]["open_loop"],
           "compensated": ee_rms(trace)}
     tq = {"open_loop": study["joint_torque_rms_error_nm"]["open_loop"], "compensated": torque_rms(trace)}
-    out = {"command_limit_fraction": command_limit,
+    out = {"command_limit_fraction": command_limit, "thrust_limit_fraction": 1.0,
            "ee_rms_error_m": ee, "joint_torque_rms_error_nm": tq,
            "thruster_wrench_rms_error": {"open_loop": study["thruster_wrench_rms_error"]["open_loop"],
                                          "compensated": wrench_rms(trace),
