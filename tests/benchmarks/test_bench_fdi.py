@@ -55,3 +55,23 @@ def test_summary_counts_what_the_targets_count():
     assert s["per_thruster"]["3"]["smallest loss named"] == "15 %" and s["per_thruster"]["6"]["loss 15%"] == "-"
     assert s["healthy"] == {"capture": {"sessions": 1, "false_alarms": 0},
                             "three_arm": {"sessions": 1, "false_alarms": 2}}
+
+
+def test_early_family_covers_every_thruster_in_the_first_convergence():
+    cases = bench_fdi.early_family()
+    n = ThrusterLayout.named().n
+    for fault in ("stuck_open", "stuck_closed"):
+        got = [c for c in cases if c.fault == fault]
+        assert sorted(c.thruster for c in got) == list(range(n))
+        assert all(0.3 <= c.onset_s <= bench_fdi.EARLY_S and c.duration_s == pytest.approx(c.onset_s + 2.0)
+                   for c in got)
+    assert not {c.seed for c in cases} & {c.seed for c in bench_fdi.family()}
+    assert bench_fdi.early_family() == cases
+
+
+def test_early_onsets_are_summarised_apart():
+    early = {**_v("stuck_open", 4, named=False), "case": {**_v("stuck_open", 4)["case"], "onset_s": 0.8}}
+    s = bench_fdi.summarise([_v("stuck_open", 0), early])
+    assert s["stuck"]["stuck_open"]["judged"] == 1 and s["stuck"]["stuck_open"]["rate"] == 1.0
+    assert s["stuck"]["stuck_open early"]["judged"] == 1 and s["stuck"]["stuck_open early"]["rate"] == 0.0
+    assert "stuck_closed early" not in s["stuck"] and "4" not in s["per_thruster"]
