@@ -157,6 +157,7 @@ class ThrusterCompensator:
         self.last_cmd_ns: int | None = None
         self.faulty: set[int] = set()
         self._demand: tuple[int, np.ndarray, np.ndarray] | None = None   # (t_ns, wrench, allowed)
+        self._demands = 0                        # commanded wrenches taken so far
         self._duty = np.zeros(n)
         self._alloc_key: tuple | None = None
         self._saturated = False
@@ -183,6 +184,7 @@ class ThrusterCompensator:
         if self._demand is not None and t_ns < self._demand[0]:
             return
         self._demand = (int(t_ns), w, ok.copy())
+        self._demands += 1
 
     def observe(self, cmd: ThrusterCommand, allowed=None) -> None:
         """The commanded wrench as the gateway observed it on the spacecraft bus."""
@@ -258,7 +260,7 @@ class ThrusterCompensator:
         usable = allowed.copy()
         for j in self.faulty:
             usable[j] = False
-        key = (id(self._demand), self.closed, usable.tobytes(), W.tobytes())
+        key = (self._demands, self.closed, usable.tobytes(), W.tobytes())
         if key != self._alloc_key:
             self._duty, self._saturated = allocate(W, w, usable, s.eps, bounded=self.closed)
             if self.closed:
