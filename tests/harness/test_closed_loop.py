@@ -127,6 +127,23 @@ def test_a_silent_imu_puts_the_thrusters_on_the_nominal_allocation_within_one_st
     assert thr["closed"][t > ev[2][1] + 0.0015].all()
 
 
+def test_a_thruster_the_fault_detector_names_is_never_fired_again():
+    # thruster 2 (the busiest) stuck closed from 2.0 s (after the detector's warm-up): the gateway
+    # names it (0.22 s later on 2026-11-26) and the valve is not commanded again
+    from simulator import scenario as scenarios
+
+    sc = scenarios.load("capture", {"duration_s": 2.6})
+    data = dict(sc.data)
+    data["degrade"] = [{"kind": "thruster_stuck", "thruster": 2, "onset_s": 2.0, "state": "closed"}]
+    tr, info = closed_loop.run_compensated(scenarios._build(sc.name, sc.text, data))
+    thr = info["thrusters"]
+    named = [e for e in thr["transitions"] if e["state"] == "fault"]
+    assert named and "thruster2" in named[0]["reason"] and 2.0 < named[0]["t_s"] < 2.5
+    after = tr.arrays["t_s"] > named[0]["t_s"] + 0.0015
+    assert thr["applied"][~after, 2].any() and not thr["applied"][after, 2].any()
+    assert thr["flags"]["fault:thruster2"] > 0
+
+
 def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(capture):
     import zenoh
 
