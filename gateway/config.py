@@ -258,6 +258,19 @@ DOCS = {
     "estimator.joints.max_gap_s": "a longer silence between epochs restarts the joint filter, s",
     "estimator.joints.model_uncertainty": "relative error of the model's masses and inertias, 1 sigma: weighs the "
                                           "distal side (model) against the sensor side (F/T) per joint",
+    "estimator.joints.contact": "detect contact: a wrench on an arm that the model does not know (docs/estimator.md, "
+                                "section 2c); published as JointEfforts.contact",
+    "estimator.joints.contact_significance": "a contact begins when the averaged residual's squared length in its "
+                                             "noise stays above this for a window (about 6 without contact)",
+    "estimator.joints.contact_force_n": "and the force it means at the end effector is above this, N",
+    "estimator.joints.contact_moment_nm": "or the moment about the end effector above this, N m (a contact ends "
+                                          "below half of both, or a quarter of the significance, for a window)",
+    "estimator.joints.contact_window_s": "time constant of the averaged residual (and the window of each verdict), s",
+    "estimator.joints.contact_floor_n": "what the model misses in the averaged residual, force, 1 sigma, N",
+    "estimator.joints.contact_floor_nm": "the same, moment, N m",
+    "estimator.joints.contact_model_error": "the model wrench's relative error a contact must stand out of",
+    "estimator.joints.contact_walk_n": "how fast a contact force may change, random walk, N per sqrt(s)",
+    "estimator.joints.contact_walk_nm": "the same, moment, N m per sqrt(s)",
     "estimator.fdi": "The thruster fault detector (docs/fdi.md); fdi = false in [estimator] turns it off.",
     "estimator.fdi.short_s": "gross faults: the GLR's forgetting window, s",
     "estimator.fdi.h_short": "gross faults: alarm threshold of the GLR (chi-squared; healthy sessions peak near 20)",

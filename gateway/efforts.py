@@ -31,7 +31,10 @@ class JointEfforts:
     first command), received at ``commanded_t_ns`` (0 if none). ``rate_rad_s``: the joint rates
     the estimate used (what friction analysis plots torque residuals against). ``ft_bias``: the
     bias of the arm's F/T sensor the joint filter has learnt, in the sensor's frame, force (N)
-    then moment (N m); ``()`` while the filter starts, or with it off.
+    then moment (N m); ``()`` while the filter starts, or with it off. ``contact``: while the arm
+    is in contact (a wrench on it that the model does not know, docs/estimator.md), that wrench on
+    the end effector, spacecraft body axes, force (N) then moment about the end effector (N m);
+    ``()`` out of contact.
     """
 
     arm: str
@@ -45,6 +48,7 @@ class JointEfforts:
     good: bool
     flags: tuple[str, ...] = ()
     ft_bias: tuple[float, ...] = ()
+    contact: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

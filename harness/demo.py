@@ -46,21 +46,23 @@ class Estimates:
     simplified: np.ndarray     # (N, n)
     good: np.ndarray           # (N,) thruster effort good
     received: int
+    contact: np.ndarray | None = None   # (N, p, 6) the published contact wrench per arm, NaN out of contact
 
     @classmethod
-    def empty(cls, n_steps: int, n_joints: int) -> "Estimates":
+    def empty(cls, n_steps: int, n_joints: int, n_arms: int = 1) -> "Estimates":
         nan = np.full
         return cls(nan((n_steps, 6), np.nan), nan((n_steps, n_joints), np.nan), nan((n_steps, n_joints), np.nan),
-                   np.zeros(n_steps, dtype=bool), 0)
+                   np.zeros(n_steps, dtype=bool), 0, nan((n_steps, n_arms, 6), np.nan))
 
 
 class Collector:
     """Puts efforts into :class:`Estimates` arrays (thread-safe enough: one writer per epoch)."""
 
     def __init__(self, robot, n_steps: int, step_ns: int = 1_000_000):
-        self.est = Estimates.empty(n_steps, robot.n_joints)
+        self.est = Estimates.empty(n_steps, robot.n_joints, len(robot.arms))
         self.step_ns = step_ns
         self.cols = {}
+        self.arm_index = {a.name: i for i, a in enumerate(robot.arms)}
         col = 0
         for a in robot.arms:
             self.cols[a.name] = slice(col, col + a.n)
@@ -81,6 +83,8 @@ class Collector:
             sl = self.cols[obj.arm]
             self.est.full[k, sl] = obj.full_nm
             self.est.simplified[k, sl] = obj.simplified_nm
+            if obj.contact and self.est.contact is not None:
+                self.est.contact[k, self.arm_index[obj.arm]] = obj.contact
         else:
             return
         self.count += 1
@@ -102,8 +106,9 @@ def _collect(col: Collector):
     return Collect()
 
 
-def run_offline(scenario, *, model_robot=None, layout=None):
-    """Simulator -> firmware frames -> a session, in lockstep in this thread. Returns (trace, Estimates, stats)."""
+def run_offline(scenario, *, model_robot=None, layout=None, settings=None):
+    """Simulator -> firmware frames -> a session, in lockstep in this thread. Returns (trace, Estimates, stats).
+    ``settings``: the estimator's (:class:`gateway.estimator.core.CoreSettings`; None: the defaults)."""
     from gateway.engine import Session
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
@@ -112,7 +117,7 @@ def run_offline(scenario, *, model_robot=None, layout=None):
     sim = Simulation(scenario)
     fw = Firmware(sim.robot)
     col = Collector(sim.robot, sim.n_steps)
-    ses = Session(sim.robot, [_collect(col)], model_robot=model_robot, samples=False,
+    ses = Session(sim.robot, [_collect(col)], model_robot=model_robot, samples=False, settings=settings,
                   layout=layout or ThrusterLayout.from_config(scenario.cfg.thrusters))
     feed = ses.feed
     while sim.k < sim.n_steps:
@@ -348,6 +353,78 @@ def accuracy(trace, est: Estimates, joint_names: list[str], first_joints: set[st
     out["pass"] = (all(s["pass"] for s in out["thrusters"].values())
                    and all(v["simplified"]["pass"] and v["full"]["pass"] for v in out["joints"].values()))
     return out
+
+
+CONTACT_GRACE_S = 0.5      # after a contact ends, the flag may take this long to drop (not a false contact)
+
+
+def contacts(trace, est: Estimates, robot, items: list[dict]) -> dict:
+    """What the gateway made of the scenario's ``[[contact]]`` tables (report.json ``contacts``).
+
+    Per table: when the arm's contact flag rose after the onset (``flagged_after_s``, None if
+    never during the contact), how long after the contact's end it dropped (``released_after_s``),
+    and the published wrench against the truth while flagged within the contact (RMS, force N and
+    moment about the end effector N m, spacecraft body axes). ``false_contact_s``: flagged time
+    outside every contact of the arm (and its grace), per arm."""
+    import pinocchio as pin
+
+    from simulator.contact import Contacts
+
+    c = Contacts(robot, items)
+    A = trace.arrays
+    t = A["t_s"]
+    n = len(t)
+    dt = float(t[1] - t[0]) if n > 1 else 1e-3
+    flagged = ~np.isnan(est.contact[:, :, 0]) if est.contact is not None else np.zeros((n, len(robot.arms)), bool)
+    model, data = robot.model, robot.model.createData()
+    truth = np.zeros((n, len(robot.arms), 6))
+    busy = np.zeros((n, len(robot.arms)), dtype=bool)
+    for item in c.items:
+        k0, k1 = int(round(item.onset / dt)), min(n, int(round(item.end / dt)))
+        busy[k0:min(n, k1 + int(round(CONTACT_GRACE_S / dt))), item.arm] = True
+        for k in range(k0, k1):
+            q = A["q"][k]
+            pin.forwardKinematics(model, data, q)
+            w = c.world_wrench(float(t[k]), data.oMi)[item.arm]
+            R = pin.Quaternion(q[6], q[3], q[4], q[5]).matrix()     # body -> world (xyzw)
+            truth[k, item.arm] = np.concatenate([R.T @ w[:3], R.T @ w[3:]])
+    out: dict = {"contacts": [], "false_contact_s": {}}
+    for item in c.items:
+        a = item.arm
+        k0, k1 = int(round(item.onset / dt)), min(n, int(round(item.end / dt)))
+        during = flagged[k0:k1, a]
+        row = {"arm": robot.arms[a].name, "onset_s": round(item.onset, 4), "end_s": round(item.end, 4),
+               "peak_force_n": round(float(np.abs(truth[k0:k1, a, :3]).max(initial=0.0)
+                                           if k1 > k0 else 0.0), 3),
+               "flagged_after_s": round(float(np.argmax(during)) * dt, 4) if during.any() else None,
+               "released_after_s": None, "force_rms_error_n": None, "moment_rms_error_nm": None}
+        after = flagged[k1:, a]
+        if during.any():
+            row["released_after_s"] = round(float(np.argmin(after)) * dt, 4) if (~after).any() else None
+            sel = np.flatnonzero(during) + k0
+            err = est.contact[sel, a] - truth[sel, a]
+            row["force_rms_error_n"] = round(float(np.sqrt((err[:, :3] ** 2).sum(axis=1).mean())), 3)
+            row["moment_rms_error_nm"] = round(float(np.sqrt((err[:, 3:] ** 2).sum(axis=1).mean())), 3)
+        out["contacts"].append(row)
+    for a, arm in enumerate(robot.arms):
+        out["false_contact_s"][arm.name] = round(float((flagged[:, a] & ~busy[:, a]).sum()) * dt, 4)
+    return out
+
+
+def format_contacts(rep: dict) -> str:
+    """:func:`contacts` as the demo prints it."""
+    def ms(x):
+        return "never" if x is None else f"{1000 * x:.0f} ms"
+
+    rows = [("contact (scenario)", "force", "flagged after", "released after", "force error", "moment error")]
+    for c in rep["contacts"]:
+        rows.append((f"{c['arm']} {c['onset_s']:g}-{c['end_s']:g} s", f"{c['peak_force_n']:.1f} N",
+                     ms(c["flagged_after_s"]), ms(c["released_after_s"]),
+                     "-" if c["force_rms_error_n"] is None else f"{c['force_rms_error_n']:.2f} N",
+                     "-" if c["moment_rms_error_nm"] is None else f"{c['moment_rms_error_nm']:.2f} N m"))
+    false = ", ".join(f"{a} {s:g} s" for a, s in rep["false_contact_s"].items() if s) or "none"
+    return "\n".join(columns(rows, "lrrrrr") + [f"(RMS errors of the published contact wrench while flagged; "
+                                                 f"flagged outside every contact: {false})"])
 
 
 def summary_row(acc: dict) -> dict:

@@ -314,11 +314,14 @@ class EffortJson(SampleJson):
         flag_tab = b.table(core.flag_names)
         arm_tab = b.table(core.arms)
         # F columns: full | simplified | rate | commanded | thruster 6 | thruster_cmd 6 | ft_bias 6 per arm
+        # | contact 6 per arm
         cf, cs, cr, cc, ct, ctc, cb = 0, nj, 2 * nj, 3 * nj, 4 * nj, 4 * nj + 6, 4 * nj + 12
+        ccw = cb + 6 * p
         # I columns: t | commanded_have nj | commanded_t nj | thr_cmd_t | thr_cmd_valves | thr_cmd_have
-        # | ft_bias_have 6 per arm (each arm's flag six times: FLTS_IF wants one per value)
+        # | ft_bias_have 6 per arm (each arm's flag six times: FLTS_IF wants one per value) | contact_have
         it, ih, ict = 0, 1, 1 + nj
         itt, itv, ith, ibh = 1 + 2 * nj, 2 + 2 * nj, 3 + 2 * nj, 4 + 2 * nj
+        ich = ibh + 6 * p
         progs = []
         col = 0
         for a, names in enumerate(core.arm_joints):
@@ -337,6 +340,7 @@ class EffortJson(SampleJson):
             pr.field("good", GOOD, fs)
             pr.field("flags", FLAGS, fs, flag_tab)
             pr.field("ft_bias", FLTS_IF, cb + 6 * a, 6, ibh + 6 * a)
+            pr.field("contact", FLTS_IF, ccw + 6 * a, 6, ich + 6 * a)
             progs.append(pr.array())
             col += n
         fs = b.flag_set(list(core._thr_bits))
@@ -366,25 +370,27 @@ class EffortJson(SampleJson):
     def encode(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(buf, offsets)``: ``per_row`` messages per row, in :meth:`EstimatorCore.efforts` order."""
         n, nj, p = len(rows), self._nj, self._p
-        F = np.empty((n, 4 * nj + 12 + 6 * p))
+        F = np.empty((n, 4 * nj + 12 + 12 * p))
         F[:, :nj] = rows["full_nm"]
         F[:, nj:2 * nj] = rows["simplified_nm"]
         F[:, 2 * nj:3 * nj] = rows["rate_rad_s"]
         F[:, 3 * nj:4 * nj] = rows["commanded_nm"]
         F[:, 4 * nj:4 * nj + 6] = rows["thruster"]
         F[:, 4 * nj + 6:4 * nj + 12] = rows["thruster_cmd"]
-        F[:, 4 * nj + 12:] = rows["ft_bias"][:, :p].reshape(n, 6 * p)
-        I = np.empty((n, 4 + 2 * nj + 6 * p), dtype=np.int64)
+        F[:, 4 * nj + 12:4 * nj + 12 + 6 * p] = rows["ft_bias"][:, :p].reshape(n, 6 * p)
+        F[:, 4 * nj + 12 + 6 * p:] = rows["contact"][:, :p].reshape(n, 6 * p)
+        I = np.empty((n, 4 + 2 * nj + 12 * p), dtype=np.int64)
         I[:, 0] = rows["t_ns"]
         I[:, 1:1 + nj] = rows["commanded_have"]
         I[:, 1 + nj:1 + 2 * nj] = rows["commanded_t_ns"]
         I[:, 1 + 2 * nj] = rows["thruster_cmd_t_ns"]
         I[:, 2 + 2 * nj] = rows["thruster_cmd_valves"]
         I[:, 3 + 2 * nj] = rows["thruster_cmd_have"]
-        I[:, 4 + 2 * nj:] = np.repeat(rows["ft_bias_have"][:, :p], 6, axis=1)
+        I[:, 4 + 2 * nj:4 + 2 * nj + 6 * p] = np.repeat(rows["ft_bias_have"][:, :p], 6, axis=1)
+        I[:, 4 + 2 * nj + 6 * p:] = np.repeat(rows["contact_have"][:, :p], 6, axis=1)
         prog_of = np.broadcast_to(self._prog_row, (n, self.per_row))
         return self._run(F, I, np.ascontiguousarray(rows["flags"]), np.ascontiguousarray(prog_of), self.per_row,
-                         400 + 64 * nj + 160 * p + 32 * len(self.core.flag_names))
+                         400 + 64 * nj + 320 * p + 32 * len(self.core.flag_names))
 
     def messages(self, rows: np.ndarray) -> list[bytes]:
         buf, off = self.encode(rows)

@@ -87,7 +87,8 @@ class ChainArrays(NamedTuple):
 
     - ``arm_n`` (p,) int64: joints of each arm; ``arm_col`` (p,) int64: the arm's first column in
       the joint vectors (an arm's columns are contiguous);
-    - ``sensor`` (p, 12): ``R_j`` (sensor -> body, row-major, 9) and ``r_j = S_j - C`` (body, m);
+    - ``sensor`` (p, 15): ``R_j`` (sensor -> body, row-major, 9), ``r_j = S_j - C`` (body, m),
+      and the end effector in the last link's internal frame (m: where a contact acts);
     - ``link`` (p, L, 25): per link, from :class:`.model.ChainLink`: ``C`` (parent internal frame
       -> this internal frame at q = 0, row-major), ``t`` (this joint's origin in the parent's
       internal frame, m; the body frame at C for the first joint), mass ``m`` (kg), first moment
@@ -110,7 +111,7 @@ def pack(model: EstimatorModel) -> ChainArrays:
     L = max((len(a.chain) for a in model.arms), default=0)
     arm_n = np.zeros(p, dtype=np.int64)
     arm_col = np.zeros(p, dtype=np.int64)
-    sensor = np.zeros((p, 12))
+    sensor = np.zeros((p, 15))
     link = np.zeros((p, max(L, 1), _LINK))
     for j, arm in enumerate(model.arms):
         n = len(arm.chain)
@@ -121,7 +122,8 @@ def pack(model: EstimatorModel) -> ChainArrays:
         arm_n[j], arm_col[j] = n, arm.columns[0]
         rb = model.robot.arms[j]
         sensor[j, :9] = np.asarray(rb.R_sc, dtype=float).reshape(9)
-        sensor[j, 9:] = rb.r_sc
+        sensor[j, 9:12] = rb.r_sc
+        sensor[j, 12:15] = arm.ee_point
         for i, lk in enumerate(arm.chain):
             C = lk.X_motion[:3, :3]
             St = -C.T @ lk.X_motion[:3, 3:]            # X_motion[:3, 3:] = -C S(t)
@@ -255,22 +257,7 @@ def _joint_motion(V: F64, qd: float, A: F64) -> None:
     A[4] -= V[3] * qd
 
 
-@_jit
-def _sensor_to_c(sr: F64, x: F64, y: F64) -> None:
-    """y = A_s(j) x: a sensor wrench (sensor frame, about S_j) as a wrench about C, body frame."""
-    f0 = sr[0] * x[0] + sr[1] * x[1] + sr[2] * x[2]
-    f1 = sr[3] * x[0] + sr[4] * x[1] + sr[5] * x[2]
-    f2 = sr[6] * x[0] + sr[7] * x[1] + sr[8] * x[2]
-    n0 = sr[0] * x[3] + sr[1] * x[4] + sr[2] * x[5]
-    n1 = sr[3] * x[3] + sr[4] * x[4] + sr[5] * x[5]
-    n2 = sr[6] * x[3] + sr[7] * x[4] + sr[8] * x[5]
-    r0, r1, r2 = sr[9], sr[10], sr[11]
-    y[0] = f0
-    y[1] = f1
-    y[2] = f2
-    y[3] = n0 + (r1 * f2 - r2 * f1)
-    y[4] = n1 + (r2 * f0 - r0 * f2)
-    y[5] = n2 + (r0 * f1 - r1 * f0)
+_sensor_to_c = jf.sensor_to_c   # y = A_s(j) x: a sensor wrench (sensor frame, about S_j) about C, body frame
 
 
 @_jit
@@ -565,6 +552,20 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
         for k in range(n + 1):
             for r in range(6):
                 W[k, r] = 0.0
+        contact = fc[jf.C_ON] != 0.0 and fc[jf.C_CONTACT] != 0.0
+        if contact:                            # unit forces at the end effector, the last link's axes
+            pe = sensor[j, 12:15]
+            for k in range(3):
+                U3 = fh[jf.R_UNIT + k]
+                for r in range(6):
+                    U3[r] = 0.0
+                U3[k] = 1.0
+            fh[jf.R_UNIT, 4] = pe[2]           # moment about the joint origin: pe x e_k
+            fh[jf.R_UNIT, 5] = -pe[1]
+            fh[jf.R_UNIT + 1, 3] = -pe[2]
+            fh[jf.R_UNIT + 1, 5] = pe[0]
+            fh[jf.R_UNIT + 2, 3] = pe[1]
+            fh[jf.R_UNIT + 2, 4] = -pe[0]
         for i in range(n - 1, -1, -1):
             lk = lks[i]
             for k in range(i + 1):
@@ -576,8 +577,13 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                 fh[2 + i, k] = W[k, 5]
             for k in range(n + 1):
                 _force_to_parent(lk, cs[i, 0], cs[i, 1], W[k], W[k])
+            if contact:
+                for k in range(3):
+                    _force_to_parent(lk, cs[i, 0], cs[i, 1], fh[jf.R_UNIT + k], fh[jf.R_UNIT + k])
         for k in range(n + 1):
             _c_to_sensor(sensor[j], W[k], W[k])
+        if contact:
+            _contact_columns(sensor[j], fh[jf.R_UNIT:jf.R_UNIT + 3], fh[jf.R_G:jf.R_G + 6], fh[jf.R_EE], tmp)
         # 3. weighted least squares J ddq = w - w0, per channel weight
         for k in range(n):
             for r in range(6):
@@ -588,12 +594,18 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
         # 3b. the joint filter: ddq and the F/T bias from every sensor of the arm; the torques
         # are then the distal side, the model's wrench for the filtered ddq carried down the chain
         fused = False
+        Ge = fh[jf.R_G:jf.R_G + 6]           # the contact's columns (when contact detection is on)
         if fc[jf.C_ON] != 0.0:
             st = fst[j]
             Pj = fP[j]
             if st[jf.S_STARTED] != 0.0:
-                jf.predict(st, Pj, n, dt, fc)
-                jf.update(st, Pj, n, W, ft[j], ft_ok[j] != 0, dq[c0:c0 + n], rate_ok[c0:c0 + n], fc, fh[0], fh[1])
+                K = 2 * n + 6
+                jf.predict(st, Pj, n, K + 6 if st[jf.S_MODE] != 0.0 else K, dt, fc)
+                if contact:                    # may start or end a contact: the state gains or loses e
+                    jf.contact_test(st, Pj, n, dt, W, ft[j], ft_ok[j] != 0, dq[c0:c0 + n], rate_ok[c0:c0 + n],
+                                    sensor[j], fh[jf.R_EE], fc, tmp, fh[jf.R_S:jf.R_S + 6])
+                jf.update(st, Pj, n, K + 6 if st[jf.S_MODE] != 0.0 else K, W, Ge, ft[j], ft_ok[j] != 0,
+                          dq[c0:c0 + n], rate_ok[c0:c0 + n], fc, fh[0], fh[1])
                 for i in range(n):
                     ddq[c0 + i] = st[n + i]
                 fused = True
@@ -602,19 +614,25 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                 fused = True
             else:
                 st[jf.S_STARTED] = 0.0
+            ke = 2 * n + 6
+            in_contact = st[jf.S_MODE] != 0.0 and fused
             for r in range(6):
                 s_ = W[n, r]
                 for k in range(n):
                     s_ += W[k, r] * ddq[c0 + k]
+                if in_contact:                 # the contact is part of the distal side's wrench
+                    for k in range(6):
+                        s_ += Ge[k, r] * st[ke + k]
                 bw[r] = s_
         # 4. forward with ddq: the wrench down the chain, proximal inertial wrenches off. Without
         # the filter, the measured one (the sensor side); with it, also the model's wrench for the
         # filtered ddq (the distal side) and the measured one less the bias, fused per joint
-        _chain_start(a_s, dw_s, gc[j], A, G)
         if fused:
-            _sensor_to_c(sensor[j], bw, Gd)
             for r in range(6):
-                hv[r] = ft[j, r]
+                hv[r] = ft[j, r] - fst[j, 2 * n + r]
+            _sensor_to_c(sensor[j], hv, tmp)
+            _chain_start(a_s, dw_s, tmp, A, G)
+            _sensor_to_c(sensor[j], bw, Gd)
             for r in range(6):                 # the rows of A_tau: unit wrenches down the chain
                 for k in range(6):
                     bw[k] = 0.0
@@ -623,6 +641,8 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                 for i in range(n):
                     _force_to_child(lks[i], cs[i, 0], cs[i, 1], tmp, tmp)
                     fh[8 + i, r] = tmp[5]
+        else:
+            _chain_start(a_s, dw_s, gc[j], A, G)
         for i in range(n):
             lk = lks[i]
             col = c0 + i
@@ -643,7 +663,45 @@ def _epoch(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64,
                 if fused:
                     Gd[k] -= tmp[k] + per[i, 1, k]
         if fused:
-            jf.fuse(fst[j], fP[j], n, fc, fh[2:8], fh[8:14], W, hv, fh[0], fh[1], full[c0:c0 + n], fh[14])
+            jf.fuse(fst[j], fP[j], n, fc, fh[2:8], fh[8:14], W, Ge, hv, fh[0], fh[1], full[c0:c0 + n], fh[14])
+
+
+@_jit
+def _contact_columns(sr: F64, unit: F64, G: F64, pe: F64, w: F64) -> None:
+    """``G`` (6, 6): the sensor wrench (sensor frame, the sign of a measured ``ft``) of each unit
+    component of a contact wrench on the end effector: force along the body axes x, y, z, then
+    moment about them, the moment about the end effector's point.
+
+    ``unit`` (3, 6): unit forces along the last link's axes at the end effector, carried to C
+    (body frame): their forces are the columns ``r_k`` of the rotation, their moments ``p x r_k``
+    with ``p`` the end effector from C, so ``p = (sum_k r_k x (p x r_k)) / 2`` (into ``pe``). The
+    F/T sensor measures what the spacecraft exerts on the arm: a contact on the arm enters it with
+    a minus."""
+    p0 = 0.0
+    p1 = 0.0
+    p2 = 0.0
+    for k in range(3):
+        r0, r1, r2 = unit[k, 0], unit[k, 1], unit[k, 2]
+        m0, m1, m2 = unit[k, 3], unit[k, 4], unit[k, 5]
+        p0 += r1 * m2 - r2 * m1
+        p1 += r2 * m0 - r0 * m2
+        p2 += r0 * m1 - r1 * m0
+    p0 *= 0.5
+    p1 *= 0.5
+    p2 *= 0.5
+    pe[0] = p0
+    pe[1] = p1
+    pe[2] = p2
+    for k in range(6):
+        for r in range(6):
+            w[r] = 0.0
+        w[k] = -1.0
+        if k < 3:                              # -(e_k, p x e_k)
+            f0, f1, f2 = w[0], w[1], w[2]
+            w[3] = p1 * f2 - p2 * f1
+            w[4] = p2 * f0 - p0 * f2
+            w[5] = p0 * f1 - p1 * f0
+        _c_to_sensor(sr, w, G[k])
 
 
 @_jit

@@ -142,6 +142,8 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
         ("thruster_cmd_have", np.int64),
         ("ft_bias", np.float64, (max(n_arms, 1), 6)),   # the joint filter's F/T bias per arm, sensor frame
         ("ft_bias_have", np.int64, (max(n_arms, 1),)),
+        ("contact", np.float64, (max(n_arms, 1), 6)),   # the contact wrench on each end effector, body axes
+        ("contact_have", np.int64, (max(n_arms, 1),)),  # 1: the arm is in contact
         ("flags", np.uint8, (n_flags,)),
         ("cause", np.int64),                    # the input row whose arrival computed it (-1: flush)
     ])
@@ -515,8 +517,11 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
         bo = 2 * chain[0][a]
         have = jfs[2][jf.C_ON] != 0.0 and fst[a, jf.S_STARTED] != 0.0
         row["ft_bias_have"][a] = 1 if have else 0
+        touch = have and fst[a, jf.S_MODE] != 0.0
+        row["contact_have"][a] = 1 if touch else 0
         for r in range(6):
             row["ft_bias"][a, r] = fst[a, bo + r] if have else 0.0
+            row["contact"][a, r] = fst[a, bo + 6 + r] if touch else 0.0
     for j in range(nj):
         row["rate_rad_s"][j] = jstate[j, 1]
         row["commanded_nm"][j] = jcmd[j]
@@ -846,13 +851,15 @@ class EstimatorCore:
             cmd, cmd_have = r["commanded_nm"].tolist(), r["commanded_have"].tolist()
             cmd_t = r["commanded_t_ns"].tolist()
             bias, bias_have = r["ft_bias"].tolist(), r["ft_bias_have"].tolist()
+            touch, touch_have = r["contact"].tolist(), r["contact_have"].tolist()
             for arm, names, lo, hi, bits, a in spans:
                 flags = self._flags(fl, bits, a)
                 have = all(cmd_have[lo:hi])
                 out.append(make_j(arm, t, names, tuple(full[lo:hi]), tuple(simp[lo:hi]),
                                   tuple(cmd[lo:hi]) if have else (), min(cmd_t[lo:hi]) if have else 0,
                                   tuple(rate[lo:hi]), not flags, flags,
-                                  tuple(bias[a]) if bias_have[a] else ()))
+                                  tuple(bias[a]) if bias_have[a] else (),
+                                  tuple(touch[a]) if touch_have[a] else ()))
             flags = self._flags(fl, self._thr_bits, -1)
             thr = r["thruster"].tolist()
             have = bool(r["thruster_cmd_have"])

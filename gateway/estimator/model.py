@@ -83,6 +83,7 @@ class ArmModel:
     axes: np.ndarray             # (n, 3) joint axes in their own joint frames
     unit_twists: tuple[pin.Motion, ...]   # the same as Pinocchio motions (rotation about the axis)
     chain: tuple[ChainLink, ...]
+    ee_point: np.ndarray         # (3,) the end effector in the last link's internal frame, m (contact)
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,12 +147,16 @@ class EstimatorModel:
                 I6[3:, 3:] = Ic - Y.mass * Sc @ Sc
                 chain.append(ChainLink(jid, _frozen(Xm), _frozen(Xf), _frozen(I6)))
                 Q_parent = Q
+            ee = model.frames[arm.ee_frame]
+            if int(ee.parentJoint) != arm.joints[-1]:
+                raise EstimatorModelError(f"arm {arm.name!r}: the end effector is not on the last joint's link")
             M_sensor = pin.SE3(R, r)
             arms.append(ArmModel(
                 name=arm.name, index=k, joints=tuple(arm.joints),
                 columns=tuple(range(col, col + arm.n)), A_s=_frozen(A_s),
                 sensor_inv=M_sensor.inverse(), axes=_frozen(np.array(axes)),
-                unit_twists=tuple(pin.Motion(np.zeros(3), z) for z in axes), chain=tuple(chain)))
+                unit_twists=tuple(pin.Motion(np.zeros(3), z) for z in axes), chain=tuple(chain),
+                ee_point=_frozen(Q_parent.T @ ee.placement.translation)))
             col += arm.n
         if col != robot.n_joints:
             raise EstimatorModelError(f"{robot.name}: {robot.n_joints - col} joint(s) belong to no arm")

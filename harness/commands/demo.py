@@ -171,6 +171,11 @@ def run(args: argparse.Namespace) -> int:
         report = {"scenario": sc.name, "robot": trace.meta["robot"], "samples": int(trace.n),
                   "duration_s": sc.duration_s, **acc, "pipeline": info,
                   "targets": demo.TARGETS, "judge_fraction": demo.JUDGE_FRACTION}
+        touches = sc.data.get("contact", [])
+        if touches:                          # the scenario's contacts: what the gateway flagged
+            import robot_description
+
+            report["contacts"] = demo.contacts(trace, est, robot_description.load(sc.robot), touches)
         if futures:
             # the 5 % wrong model: the live run's own frames (the nominal simulation, frame for
             # frame) through a fresh pipeline whose model is off, instead of simulating them again
@@ -224,6 +229,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"bsc demo: {sc.name} ({trace.meta['robot']}), {trace.n} epochs through CAN -> gateway -> zenoh; "
           f"{info['efforts_received']} efforts received")
     print(demo.format_table(acc))
+    if "contacts" in report:
+        print()
+        print(demo.format_contacts(report["contacts"]))
     if "noise_sweep" in report:
         print()
         print(_sweep_table(report))

@@ -117,10 +117,12 @@ class SequentialFilter(DenseFilter):
             self.P = self.P - np.outer(ph, ph) / sv
 
 
-def _fused(model, data, s, fP, q, dq, ddq, ft, a_s, w_s, dw_s, Js):
+def _fused(model, data, s, fP, q, dq, ddq, ft, a_s, w_s, dw_s, Js, bias):
     """The published torques from the filtered ddq, on Pinocchio: the distal side (the model's
-    inverse dynamics of the links beyond each joint) and the sensor side (the measured wrench down
-    the chain, joint_torques), weighted by the variances joint_filter.fuse documents."""
+    inverse dynamics of the links beyond each joint) and the sensor side (the measured wrench less
+    the filter's bias ``bias`` (p, 6) down the chain, joint_torques), weighted by the variances
+    joint_filter.fuse documents."""
+    ft = ft - np.asarray(bias, dtype=float)
     tau_d = _rnea(model, data, q, dq, ddq, a_s, w_s, dw_s)[6:]
     tau_s = joint_torques(model, data, q, dq, ddq, ft, a_s, w_s, dw_s)
     A = joint_torque_matrix(model, data, q)
@@ -132,17 +134,17 @@ def _fused(model, data, s, fP, q, dq, ddq, ft, a_s, w_s, dw_s, Js):
         M[:, k] = _rnea(model, data, q, np.zeros(nj), e, np.zeros(3), np.zeros(3), np.zeros(3))[6:]
     eps2 = s.model_uncertainty ** 2
     sig2 = np.r_[np.full(3, s.force_sigma_n ** 2), np.full(3, s.torque_sigma_nm ** 2)]
-    bias2 = np.r_[np.full(3, s.bias_prior_n ** 2), np.full(3, s.bias_prior_nm ** 2)]
     out = np.empty(nj)
     for a in model.arms:
         cols = list(a.columns)
         n = len(cols)
         Pdd = fP[a.index][n:2 * n, n:2 * n]
+        Pbb = fP[a.index][2 * n:2 * n + 6, 2 * n:2 * n + 6]
         for i, col in enumerate(cols):
             D = M[col, cols]
             E = A[col] @ Js[a.index] - D
             h = A[col] @ ft[a.index] - tau_s[col]
             vd = eps2 * tau_d[col] ** 2 + D @ Pdd @ D
-            vs = (A[col] ** 2) @ (sig2 + bias2) + eps2 * h ** 2 + E @ Pdd @ E
+            vs = (A[col] ** 2) @ sig2 + A[col] @ Pbb @ A[col] + eps2 * h ** 2 + E @ Pdd @ E
             out[col] = tau_d[col] + vd / (vd + vs) * (tau_s[col] - tau_d[col])
     return out

@@ -391,7 +391,8 @@ class LiveEstimator:
                     fused_arms.append(arm)
             if fused_arms:
                 covs = [f.P for f in self._jf]
-                fused = _fused(m, data, sj, covs, q, dq, fddq, ft, a_s, w_s, dw_s, Js)
+                seen = [f.x[2 * f.n:].astype(float) if f.started else np.zeros(6) for f in self._jf]
+                fused = _fused(m, data, sj, covs, q, dq, fddq, ft, a_s, w_s, dw_s, Js, seen)
                 for arm in fused_arms:
                     full[list(arm.columns)] = fused[list(arm.columns)]
 
