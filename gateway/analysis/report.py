@@ -44,6 +44,13 @@ def summary_text(result: SeriesResult, skipped: list[str] = ()) -> str:
             row = "".join(f"{_fmt(s.axes[a].efficiency, '.3f') + ' [' + _fmt(s.axes[a].quiet_offset) + ']':>16}"
                           if a in s.axes else f"{'-':>16}" for a in axes)
             out.append(f"  {s.name:<22}" + row)
+    touched = [(s, arm, c) for s in ss for arm, c in sorted(s.contacts.items())]
+    if touched:
+        out.append("")
+        out.append("contacts (a wrench on an arm that the model does not know, JointEfforts.contact):")
+        for s, arm, c in touched:
+            out.append(f"  {s.name:<22} {arm:<10} {int(c['count'])} contact(s), {c['seconds']:.2f} s in all, "
+                       f"up to {c['max_force_n']:.1f} N")
     out.append("")
     if not result.findings:
         out.append("alerts: none")

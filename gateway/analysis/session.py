@@ -32,6 +32,7 @@ gateways without the filter have none, and ``c`` still does.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -107,6 +108,8 @@ class SessionFeatures:
     notes: list[str] = field(default_factory=list)          # e.g. analysed from a truncated log's intact part
     thruster_faults: list[dict] = field(default_factory=list)   # within the session (analysis.fdi.ThrusterAlarm)
     ft_bias: dict[str, list[float]] = field(default_factory=dict)   # arm -> F/T bias (fx fy fz N, mx my mz N m)
+    # arm -> its contacts in the session (JointEfforts.contact): count, seconds in contact, largest force (N)
+    contacts: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -254,6 +257,7 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
         raise AnalysisError(f"{path}: not a readable MCAP log ({exc})") from None
     joint_rows: dict[str, list] = {}
     bias_rows: dict[str, list] = {}
+    touch: dict[str, dict[str, float]] = {}
     arm_joints: dict[str, list[str]] = {}
     thr_rows: list = []
     health: dict[str, dict[str, float]] = {}
@@ -272,6 +276,7 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
                 counts["joint_efforts"] += 1
                 if d["good"] and len(d.get("ft_bias") or ()) == 6:
                     bias_rows.setdefault(d["arm"], []).append(d["ft_bias"])
+                _contact(touch, d)
                 if not d["good"] or not d["commanded_nm"]:
                     counts["not_good"] += 1
                     continue
@@ -309,6 +314,8 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
     index = int(series["session_index"]) if series.get("session_index", "").isdigit() else None
     feats = SessionFeatures(str(path), robot or meta.get("bsc.session", {}).get("robot", ""), index,
                             int(start), int(end), arms=arm_joints, health=health, metadata=meta, counts=counts)
+    feats.contacts = {arm: {k: v for k, v in c.items() if not k.startswith("_")} for arm, c in touch.items()
+                      if c["count"]}
     for arm, rows in bias_rows.items():
         if len(rows) >= 2 * MIN_BIAS_SAMPLES:
             feats.ft_bias[arm] = [float(v) for v in np.mean(np.asarray(rows[len(rows) // 2:], dtype=float), axis=0)]
@@ -327,6 +334,24 @@ def _analyze_file(path: Path, src: Path) -> SessionFeatures:
                 fit = replace(fit, quiet_offset=float(np.mean(a[quiet, i])), quiet_samples=int(quiet.sum()))
             feats.axes[axis] = fit
     return feats
+
+
+def _contact(touch: dict[str, dict[str, float]], d: dict) -> None:
+    """One JointEfforts message into its arm's contact tally: a contact begins where the published
+    contact wrench appears; it lasts over the consecutive messages that carry one."""
+    c = touch.setdefault(d["arm"], {"count": 0, "seconds": 0.0, "max_force_n": 0.0, "_in": 0.0, "_t": 0.0})
+    w = d.get("contact") or ()
+    t = d["t_ns"] * 1e-9
+    if len(w) == 6:
+        if c["_in"]:
+            c["seconds"] += t - c["_t"]
+        else:
+            c["count"] += 1
+        c["_in"] = 1.0
+        c["max_force_n"] = max(c["max_force_n"], math.hypot(w[0], w[1], w[2]))
+    else:
+        c["_in"] = 0.0
+    c["_t"] = t
 
 
 def quiet_mask(valves: np.ndarray, t_ns: np.ndarray, guard_ns: int = QUIET_GUARD_NS) -> np.ndarray:

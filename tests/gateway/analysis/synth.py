@@ -37,9 +37,17 @@ def joint_stream(rng, n, coulomb, viscous=5.0, ft_bias=0.0, noise=2.0, rate_hz=2
     return out
 
 
+def _touch(contact: dict, arm: str, i: int) -> tuple:
+    if arm in contact and contact[arm][0] <= i < contact[arm][1]:
+        return tuple(contact[arm][2])
+    return ()
+
+
 def write_session(path, k, *, coulomb=None, efficiency=0.9, ft_bias=None, thr_offset=0.0, seed=0, n=4000,
-                  series="synth"):
-    """One synthetic session log with ``bsc.series`` metadata (session index ``k``)."""
+                  series="synth", contact=None):
+    """One synthetic session log with ``bsc.series`` metadata (session index ``k``); ``contact``:
+    arm -> ``(i0, i1, wrench)``, the arm's efforts from message i0 to i1 (excluded) carry it."""
+    contact = contact or {}
     rng = np.random.default_rng(seed)
     coulomb = coulomb or {j: 90.0 for js in ARMS.values() for j in js}
     base = EPOCH_NS + k * SESSION_SPACING_NS
@@ -57,7 +65,8 @@ def write_session(path, k, *, coulomb=None, efficiency=0.9, ft_bias=None, thr_of
             for arm, (tt, q, dq, cmd, est) in joints.items():
                 rec.record(keys.joint_efforts(ROBOT, arm), JointEfforts(
                     arm=arm, t_ns=int(tt[i]), joints=ARMS[arm], full_nm=tuple(est[i]), simplified_nm=tuple(est[i]),
-                    commanded_nm=tuple(cmd[i]), commanded_t_ns=int(tt[i]), rate_rad_s=tuple(dq[i]), good=True),
+                    commanded_nm=tuple(cmd[i]), commanded_t_ns=int(tt[i]), rate_rad_s=tuple(dq[i]), good=True,
+                    contact=_touch(contact, arm, i)),
                     base + int(tt[i]))
             rec.record(keys.thruster_effort(ROBOT), ThrusterEffort(
                 t_ns=int(t[i]), force_n=tuple(est_w[i, :3]), moment_nm=tuple(est_w[i, 3:]),

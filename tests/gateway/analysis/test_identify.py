@@ -68,6 +68,25 @@ def test_ft_bias_moves_offsets_not_coulomb(tmp_path):
     assert f.axes["fx"].quiet_offset == pytest.approx(20.0, abs=1.0)
 
 
+def test_contacts_are_counted_per_arm(tmp_path):
+    """A contact on arm1 from message 1000 to 1400 (200 Hz: from its first message to its last,
+    1.995 s), up to 30 N; arm0 none; another session with a shorter one. bsc analyze's text lists
+    them per session."""
+    from gateway import analysis
+    from gateway.analysis.report import summary_text
+
+    p = write_session(tmp_path / "c.mcap", 0, contact={"arm1": (1000, 1400, (0.0, 30.0, 0.0, 0.0, 0.0, 1.0))})
+    f = analyze_session(p)
+    assert f.contacts == {"arm1": {"count": 1, "seconds": pytest.approx(399 / 200), "max_force_n": 30.0}}
+    q = write_session(tmp_path / "d.mcap", 1, contact={"arm1": (3000, 3100, (10.0, 0.0, 0.0, 0.0, 0.0, 0.0))})
+    assert analyze_session(q).contacts["arm1"]["count"] == 1
+    result, skipped = analysis.run([p, q], progress=False)
+    assert not skipped
+    text = summary_text(result)
+    assert "c                      arm1       1 contact(s), 2.00 s in all, up to 30.0 N" in text, text
+    assert "arm0" not in text.split("contacts (")[1].split("alerts")[0]
+
+
 def test_not_a_log_and_no_efforts(tmp_path):
     bad = tmp_path / "x.mcap"
     bad.write_bytes(b"not mcap")
