@@ -35,7 +35,8 @@ The filter learns from an IMU sample only when its normalised innovation squared
 has seen it), and not at all while a fault is suspected. A confirmed stuck valve is modelled
 through the valve mask; if it comes back (its own signature with the opposite sign, the valve
 taken as commanded), the fault is cleared: an alarm of type ``cleared``, the mask back to the
-command.
+command. A partial loss in the filter whose thrust comes back (its own signature with the opposite
+sign, a CUSUM for its own size) is cleared too, the lost part put back on the valve's wrench.
 
 Everything here is compiled (numba, explicit loops, no fastmath, nogil, cache): :func:`observe`
 takes one IMU update's tap, the live estimator and the offline run (:func:`run_events`) call the
@@ -77,11 +78,11 @@ _A, _B, _CU, _CA, _CB, _RAISED = range(6)        # blocks of h = 2 n numbers aft
 MAX_FAULTS = 4
 # a fault: its hypothesis, A and B since it was raised, the size that raised it, updates since,
 # when it was detected (ns), the detector (SHORT, LONG), its statistic, its stage, its type once
-# confirmed; for a stuck valve in the filter the recovery test's A and B (short window), its run
-# and when the run began (ns)
+# confirmed; for a fault in the filter the recovery test's A and B (a stuck valve: short window; a
+# partial loss: since its CUSUM last left zero), its run, when the run began (ns), and the CUSUM
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
- _F_RT) = range(14)
-_NF = 14
+ _F_RT, _F_RC) = range(15)
+_NF = 15
 CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR = 0, 1, 2, 3, 4, 5
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
@@ -265,6 +266,33 @@ def _best(st: F64, h_all: int, w: int) -> tuple[int, float]:
 
 
 @_jit
+def _event(st: F64, ev0: int, t_ns: float, j: int, typ: int, theta: float, stat: float, win: float,
+           since_ns: float) -> None:
+    """Append an alarm row (:data:`EVENT_FIELDS`) when there is room."""
+    ne = int(st[_S_EVENTS])
+    if ev0 + _NEV * (ne + 1) <= st.shape[0]:
+        q = ev0 + _NEV * ne
+        st[q] = t_ns
+        st[q + 1] = j
+        st[q + 2] = typ
+        st[q + 3] = theta
+        st[q + 4] = stat
+        st[q + 5] = win
+        st[q + 6] = since_ns
+        st[_S_EVENTS] = ne + 1
+
+
+@_jit
+def _restart(st: F64, h_all: int) -> None:
+    """Both detectors from zero (the filter's model of the faults changed)."""
+    for k in range(5 * h_all):
+        st[_S_HDR + k] = 0.0
+    for w in range(2):
+        st[_S_BEST + w] = -1.0
+        st[_S_RUN + w] = 0.0
+
+
+@_jit
 def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float:
     """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
     detector state ``st``. Returns what the filter may learn from the next update, its ``learn``
@@ -341,17 +369,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             continue
         typ = _fault_type(hyp % 2, theta)
         st[o + _F_TYPE] = typ
-        ne = int(st[_S_EVENTS])
-        if ev0 + _NEV * (ne + 1) <= st.shape[0]:
-            q = ev0 + _NEV * ne
-            st[q] = float(t_ns)
-            st[q + 1] = hyp // 2
-            st[q + 2] = typ
-            st[q + 3] = theta
-            st[q + 4] = st[o + _F_STAT]
-            st[q + 5] = st[o + _F_WIN]
-            st[q + 6] = st[o + _F_T]
-            st[_S_EVENTS] = ne + 1
+        _event(st, ev0, float(t_ns), hyp // 2, typ, theta, st[o + _F_STAT], st[o + _F_WIN], st[o + _F_T])
         if typ == STUCK_OPEN:
             st[_S_OPEN] = float(int(st[_S_OPEN]) | (1 << (hyp // 2)))
             st[o + _F_STAGE] = TO_FILTER
@@ -362,11 +380,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             st[o + _F_STAGE] = TO_FILTER
         else:
             st[o + _F_STAGE] = IN_DETECTOR
-        for k in range(5 * h_all):            # the detectors restart on the accommodated innovation
-            st[_S_HDR + k] = 0.0
-        for w in range(2):
-            st[_S_BEST + w] = -1.0
-            st[_S_RUN + w] = 0.0
+        _restart(st, h_all)                   # the detectors restart on the accommodated innovation
     # the noise level from this update, the unmodelled faults taken out: in the warm-up a running
     # mean, then an exponential one over healthy updates (not while a fault is suspected: the
     # last verdict held the filter), each update clipped to NOISE_CLIP times the level
@@ -409,28 +423,50 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_RRUN] += 1.0
         if st[o + _F_RRUN] < cfg[_C_HOLD]:
             continue
-        ne = int(st[_S_EVENTS])
-        if ev0 + _NEV * (ne + 1) <= st.shape[0]:
-            q = ev0 + _NEV * ne
-            st[q] = float(t_ns)
-            st[q + 1] = j
-            st[q + 2] = CLEARED
-            st[q + 3] = back
-            st[q + 4] = T
-            st[q + 5] = SHORT
-            st[q + 6] = st[o + _F_RT]
-            st[_S_EVENTS] = ne + 1
+        _event(st, ev0, float(t_ns), j, CLEARED, back, T, SHORT, st[o + _F_RT])
         bit = 1 << j
         st[_S_OPEN] = float(int(st[_S_OPEN]) & ~bit)
         st[_S_CLOSED] = float(int(st[_S_CLOSED]) & ~bit)
         st[o + _F_STAGE] = TO_CLEAR
         st[_S_CLEARED] += 1.0
         st[_S_HDR + _RAISED * h_all + hyp] = 0.0       # it may fail again
-        for k in range(5 * h_all):                      # the detectors restart on the valve as commanded
-            st[_S_HDR + k] = 0.0
-        for w in range(2):
-            st[_S_BEST + w] = -1.0
-            st[_S_RUN + w] = 0.0
+        _restart(st, h_all)                             # the detectors restart on the valve as commanded
+        recovering = True
+    # partial losses in the filter: has the thrust come back? Its own signature with the opposite
+    # sign (more thrust than modelled while the valve is open), a CUSUM for the loss's own size:
+    # no other hypothesis explains it, and leaks of other thrusters took the returned thrust
+    for f in range(nf):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] != IN_FILTER or st[o + _F_TYPE] != PARTIAL_LOSS:
+            continue
+        hyp = int(st[o + _F_HYP])
+        theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+        a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, LOSS, ew, g, gw)
+        rc = st[o + _F_RC] - theta * b - 0.5 * theta * theta * a
+        if rc <= 0.0:
+            st[o + _F_RC] = 0.0
+            st[o + _F_RA] = 0.0
+            st[o + _F_RB] = 0.0
+        else:
+            st[o + _F_RC] = rc
+            st[o + _F_RA] += a
+            st[o + _F_RB] += b
+        back = -st[o + _F_RB] / st[o + _F_RA] if st[o + _F_RA] > 0.0 else 0.0
+        if st[o + _F_RC] > cfg[_C_SUSPECT + LONG]:
+            recovering = True
+        if st[o + _F_RC] <= cfg[_C_H + LONG] or back < 0.5 * theta:
+            st[o + _F_RRUN] = 0.0
+            continue
+        if st[o + _F_RRUN] == 0.0:
+            st[o + _F_RT] = float(t_ns)
+        st[o + _F_RRUN] += 1.0
+        if st[o + _F_RRUN] < cfg[_C_HOLD + LONG]:
+            continue
+        _event(st, ev0, float(t_ns), hyp // 2, CLEARED, back, st[o + _F_RC], LONG, st[o + _F_RT])
+        st[o + _F_STAGE] = TO_CLEAR
+        st[_S_CLEARED] += 1.0
+        st[_S_HDR + _RAISED * h_all + hyp] = 0.0        # it may be lost again
+        _restart(st, h_all)                             # the detectors restart on the thrust restored
         recovering = True
     st[_S_UPDATES] += 1.0
     upd = st[_S_UPDATES]
@@ -492,6 +528,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_RB] = 0.0
         st[o + _F_RRUN] = 0.0
         st[o + _F_RT] = 0.0
+        st[o + _F_RC] = 0.0
         nf += 1
         st[_S_NFAULTS] = nf
         confirming = True
@@ -510,11 +547,23 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     bias states, and a valve that had never fired still holds the nominal prior). A stuck-closed
     valve needs only the mask. A stuck valve just cleared (:func:`observe`): its wrench and the bias
     states relearn (their variances grow by :data:`RELEARN_SIGMA` of its nominal wrench), as the
-    two were one sum while it was stuck open, and it was not learnt while stuck closed."""
+    two were one sum while it was stuck open, and it was not learnt while stuck closed. A partial
+    loss just cleared: the lost part back on the valve's wrench, and room to refine it."""
     n = int(cfg[_C_N])
     fbase = _S_HDR + 6 * 2 * n
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
+        if st[o + _F_STAGE] == TO_CLEAR and st[o + _F_TYPE] == PARTIAL_LOSS:
+            # the lost part back on the valve's learned wrench, and room to refine it
+            j = int(st[o + _F_HYP]) // 2
+            theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
+            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            for q in range(6):
+                x[6 * j + q] += theta * Wnom[j, q]
+                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            st[o + _F_STAGE] = CLEARED_STAGE
+            continue
         if st[o + _F_STAGE] == TO_CLEAR:
             # while stuck, the valve's wrench and the bias states were one sum (always open) or the
             # valve was not learnt (never open): both relearn

@@ -221,6 +221,18 @@ def test_a_stuck_valve_that_comes_back_is_cleared(paper, thruster, kind, want):
     assert not fdi.unresolved(st) and fdi.faults(st, layout.n) == []
 
 
+def test_a_partial_loss_that_ends_is_cleared(paper):
+    model, layout = paper
+    onset, end = 4000, 8000
+    ev, _ = stream(model, layout, steps=12000, seed=19, fault=(9, "loss", onset, 0.7, end))
+    events, _, kf, st = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(9, fdi.PARTIAL_LOSS), (9, fdi.CLEARED)]
+    t_clear, back = events[1][0], events[1][3]
+    assert 0 < (t_clear - end * STEP_NS) / 1e9 <= 1.0 and back == pytest.approx(events[0][3], abs=0.1)
+    assert not fdi.unresolved(st) and fdi.faults(st, layout.n) == []
+    assert kf.efficiency()[9] > 0.9                 # the lost part is back on the valve's wrench
+
+
 def test_a_stuck_valve_that_stays_is_not_cleared(paper):
     model, layout = paper
     ev, _ = stream(model, layout, steps=12000, seed=35, fault=(5, "stuck_open", 4000, 1.0))
