@@ -140,7 +140,7 @@ class FdiSettings:
     hold_long: int = 50
     confirm_long: int = 250
     suspect: float = 40.0
-    warmup_s: float = 1.5
+    warmup_s: float = 0.2
 
     def config(self, n: int, imu_period_s: float) -> np.ndarray:
         c = np.zeros(_NCFG)
