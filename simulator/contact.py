@@ -13,7 +13,7 @@ Each table puts a wrench on one arm's end effector, at the point of its ``<arm>_
     ramp_s = 0.02           # optional: rise and fall time (a linear ramp each way), s
 
 Contacts add up. The world-frame ones are turned into the joint's axes with the orientation at the
-start of the step (the dynamics' ``data_start``), held over the step like every other input.
+start of the step, held over the step like every other input.
 The truth of a contact, as a function of time and the state, is :meth:`Contacts.world_wrench`.
 """
 from __future__ import annotations
@@ -94,13 +94,14 @@ class Contacts:
             return s * R_ee.T.dot(c.force), s * R_ee.T.dot(c.moment)
         return s * c.force, s * c.moment
 
-    def fext(self, t: float, data: pin.Data) -> list | None:
-        """The external forces per joint (local frames) at time ``t``, for ``pin.aba``; ``data``
-        has the placements of the step's start (``oMi``). None when no contact acts."""
+    def fext(self, t: float, data: pin.Data, q: np.ndarray) -> list | None:
+        """The external forces per joint (local frames) at time ``t`` and configuration ``q``, for
+        ``pin.aba``; ``data`` takes the placements (only when a contact acts). None when none does."""
         active = [(c, c.profile(t)) for c in self.items]
         active = [(c, s) for c, s in active if s > 0.0]
         if not active:
             return None
+        pin.forwardKinematics(self.model, data, q)
         for f in self._fext:
             f.setZero()
         for c, s in active:

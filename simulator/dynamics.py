@@ -129,41 +129,25 @@ class Dynamics:
         aba, integrate, q_rate = pin.aba, pin.integrate, _q_rate
         h2, h = self._h2, self._h
         tau = np.concatenate((base_wrench, tau_motor))
-        fext = None
-        if self.contacts:
-            pin.forwardKinematics(model, self.data_start, q0)
-            fext = self.contacts.fext(self.steps * self.dt, self.data_start)
-        if fext is not None:            # held over the step, in the joints' axes
-            tau[6:] += self._friction_torques(tau, fext)
-            a1 = aba(model, self.data_start, q0, v0, tau, fext)
+        fext = self.contacts.fext(self.steps * self.dt, self.data_start, q0) if self.contacts else None
+        tau[6:] += self._friction_torques(tau, fext)
+        # the external forces (held over the step, in the joints' axes) go with tau into each ABA
+        inputs = (tau,) if fext is None else (tau, fext)
+        a1 = aba(model, self.data_start, q0, v0, *inputs)
+        if fext is not None:
             self._transmitted(fext)
-            th = h2 * v0
-            v2 = v0 + h2 * a1
-            k2q = q_rate(th, v2)
-            k2v = aba(model, data, integrate(model, q0, th), v2, tau, fext)
-            th = h2 * k2q
-            v3 = v0 + h2 * k2v
-            k3q = q_rate(th, v3)
-            k3v = aba(model, data, integrate(model, q0, th), v3, tau, fext)
-            th = h * k3q
-            v4 = v0 + h * k3v
-            k4q = q_rate(th, v4)
-            k4v = aba(model, data, integrate(model, q0, th), v4, tau, fext)
-        else:
-            tau[6:] += self._friction_torques(tau)
-            a1 = aba(model, self.data_start, q0, v0, tau)
-            th = h2 * v0
-            v2 = v0 + h2 * a1
-            k2q = q_rate(th, v2)
-            k2v = aba(model, data, integrate(model, q0, th), v2, tau)
-            th = h2 * k2q
-            v3 = v0 + h2 * k2v
-            k3q = q_rate(th, v3)
-            k3v = aba(model, data, integrate(model, q0, th), v3, tau)
-            th = h * k3q
-            v4 = v0 + h * k3v
-            k4q = q_rate(th, v4)
-            k4v = aba(model, data, integrate(model, q0, th), v4, tau)
+        th = h2 * v0
+        v2 = v0 + h2 * a1
+        k2q = q_rate(th, v2)
+        k2v = aba(model, data, integrate(model, q0, th), v2, *inputs)
+        th = h2 * k2q
+        v3 = v0 + h2 * k2v
+        k3q = q_rate(th, v3)
+        k3v = aba(model, data, integrate(model, q0, th), v3, *inputs)
+        th = h * k3q
+        v4 = v0 + h * k3v
+        k4q = q_rate(th, v4)
+        k4v = aba(model, data, integrate(model, q0, th), v4, *inputs)
         # (dt/6) (k1 + 2 k2 + 2 k3 + k4) for theta and v at once
         rates = self._weights.dot(np.array((v0, k2q, k3q, k4q, a1, k2v, k3v, k4v)))
         v = v0 + rates[1]

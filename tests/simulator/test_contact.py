@@ -74,8 +74,7 @@ def test_dynamics_f_is_rnea_with_the_external_forces():
     tau_m = rng.uniform(-5, 5, robot.n_joints)
     a = dyn.step(np.zeros(6), tau_m)
     d = robot.model.createData()
-    pin.forwardKinematics(robot.model, d, q)
-    fext = dyn.contacts.fext(0.0, d)
+    fext = dyn.contacts.fext(0.0, d, q)
     tau = np.concatenate([np.zeros(6), tau_m])
     assert np.abs(pin.rnea(robot.model, d, q, v, a, fext) - tau).max() < 1e-9
     for j in range(1, robot.model.njoints):
