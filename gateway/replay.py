@@ -779,9 +779,10 @@ def play_zenoh(path: str | os.PathLike[str], session, *, rate: float = 1.0, loop
                     key, congestion_control=zenoh.CongestionControl.BLOCK)
             if wait_s > 0:
                 deadline = time.monotonic() + wait_s
-                while not all(p.matching_status for p in pubs.values()):
+                while unmatched := [k for k, p in pubs.items() if not p.matching_status.matching]:
                     if time.monotonic() >= deadline:
-                        warn(f"no subscriber matched within {wait_s:g} s; publishing anyway")
+                        warn(f"no subscriber within {wait_s:g} s for {len(unmatched)} of {len(pubs)} "
+                             f"keys (first: {unmatched[0]}); publishing anyway")
                         break
                     if stop is not None and stop.is_set():
                         return stats

@@ -72,9 +72,11 @@ def test_recording_can_and_zenoh(tmp_path):
                                                         is_extended_id=False)
                     tx[b].send(msg)
                     sent[b].append(bytes(msg.data))
-                pub_w = pub_s.declare_publisher(keys.wrench(ROBOT, "arm0"))
-                pub_e = pub_s.declare_publisher(keys.thruster_effort(ROBOT))
-                assert _until(lambda: pub_w.matching_status and pub_e.matching_status)
+                # BLOCK: the test checks the recorder, not zenoh's drop policy for sensor keys
+                block = zenoh.CongestionControl.BLOCK
+                pub_w = pub_s.declare_publisher(keys.wrench(ROBOT, "arm0"), congestion_control=block)
+                pub_e = pub_s.declare_publisher(keys.thruster_effort(ROBOT), congestion_control=block)
+                assert _until(lambda: pub_w.matching_status.matching and pub_e.matching_status.matching)
                 for s in samples:
                     pub_w.put(codec.encode(s))
                 pub_e.put(codec.encode(effort))

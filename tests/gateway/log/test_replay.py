@@ -619,6 +619,36 @@ def test_live_zenoh_payloads_byte_identical(session, capsys):
     assert sorted(got) == sorted(want)
 
 
+def test_live_zenoh_wait_names_the_keys_nobody_subscribes(session):
+    """``--wait`` waits for a subscriber on every key: with one only on the efforts, the rest
+    are named in the warning after the wait, and the efforts still all arrive."""
+    import zenoh
+
+    from gateway.zenoh_config import make_config
+
+    path, _, emitted = session
+    want = [(k, p) for k, p in emitted if "/efforts/" in k]
+    got, warned = [], []
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    with zenoh.open(make_config(listen=[ep])) as sub_s, zenoh.open(make_config(connect=[ep])) as pub_s:
+        sub = sub_s.declare_subscriber(f"bsc/{ROBOT}/efforts/**",
+                                       lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
+        try:
+            t0 = time.monotonic()
+            rp.play_zenoh(path, pub_s, rate=0, wait_s=0.5, warn=warned.append,
+                          topics=["bsc/*/efforts/**", "*/sensors/imu"])
+            waited = time.monotonic() - t0
+            deadline = time.monotonic() + 30
+            while len(got) < len(want) and time.monotonic() < deadline:
+                time.sleep(0.01)
+        finally:
+            sub.undeclare()
+    assert waited >= 0.5
+    assert len(warned) == 1 and "no subscriber within 0.5 s for 1 of " in warned[0], warned
+    assert "sensors/imu" in warned[0]
+    assert sorted(got) == sorted(want)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 def _foreign_mcap(path: Path) -> None:

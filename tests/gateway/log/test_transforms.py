@@ -293,8 +293,10 @@ def test_bsc_record_over_zenoh_writes_the_transforms(tmp_path):
     with zenoh.open(make_config(listen=[ep])) as rec_s, zenoh.open(make_config(connect=[ep])) as pub_s, \
             Recorder(path) as rec:
         with Recording(rec, {}, rec_s, keys.everything(robot.name), robot=robot) as recording:
-            pubs = {name: pub_s.declare_publisher(keys.joint(robot.name, name)) for name in robot.joint_names}
-            imu = pub_s.declare_publisher(keys.imu(robot.name))
+            block = zenoh.CongestionControl.BLOCK       # every sample must arrive (not the sensors' DROP)
+            pubs = {name: pub_s.declare_publisher(keys.joint(robot.name, name), congestion_control=block)
+                    for name in robot.joint_names}
+            imu = pub_s.declare_publisher(keys.imu(robot.name), congestion_control=block)
             deadline = time.monotonic() + 30
             while not all(p.matching_status.matching for p in [imu, *pubs.values()]):
                 assert time.monotonic() < deadline, "no subscriber matched"
