@@ -25,14 +25,14 @@ import typing
 from gateway.errors import GatewayError
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
-from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+from gateway.efforts import Alert, JointEfforts, ThrusterEffort, ValveWrenches
 from gateway.log.schema import FORM_VERSION, pair_value_type, record_of
 
 VERSION = FORM_VERSION          # the "v" of every payload (the JSON form, gateway.log.schema)
 ENCODING = "application/json"
 TYPES: dict[str, type] = {t.__name__: t for t in (WrenchSample, ImuSample, JointSample, TorqueCommand,
                                                    ThrusterCommand, ValveCommand, DeviceHealth, BusHealth, JointEfforts,
-                                                   ThrusterEffort, Alert)}
+                                                   ThrusterEffort, ValveWrenches, Alert)}
 
 
 def declare_publisher(session, key: str):
@@ -184,20 +184,24 @@ def _convert(value, hint, where: str):
     raise CodecError(f"{where}: unsupported field type {hint!r}")
 
 
-def decode(payload: bytes | bytearray | memoryview | str):
-    """Bytes -> the sample or health dataclass; :class:`CodecError` on anything else."""
+def decode(payload: bytes | bytearray | memoryview | str, types: typing.Mapping[str, type] | None = None):
+    """Bytes -> the sample or health dataclass; :class:`CodecError` on anything else. ``types``:
+    the records to accept, by name (default :data:`TYPES`; e.g. the compensator's commands,
+    :mod:`gateway.control.messages`), each checked the same way."""
     try:
         obj = json.loads(bytes(payload) if not isinstance(payload, str) else payload)
     except (ValueError, UnicodeDecodeError) as exc:
         raise CodecError(f"not JSON: {exc}") from None
     if not isinstance(obj, dict):
         raise CodecError("not a JSON object")
-    cls = TYPES.get(obj.get("type"))  # type: ignore[arg-type]
+    cls = (TYPES if types is None else types).get(obj.get("type"))  # type: ignore[arg-type]
     if cls is None:
         raise CodecError(f"unknown type {obj.get('type')!r}")
     if obj.get("v") != VERSION:
         raise CodecError(f"unsupported version {obj.get('v')!r}")
-    hints = _HINTS[cls]
+    hints = _HINTS.get(cls)
+    if hints is None:
+        hints = _HINTS[cls] = typing.get_type_hints(cls)
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name in obj:

@@ -2,7 +2,8 @@
 
 These frozen dataclasses are the product of ``bsc gateway`` (efforts) and ``bsc monitor``
 (alerts); they travel through :mod:`gateway.codec` under the keys of :mod:`gateway.keys`
-(``bsc/<robot>/efforts/joints/<arm>``, ``bsc/<robot>/efforts/thrusters``, ``bsc/<robot>/alerts``).
+(``bsc/<robot>/efforts/joints/<arm>``, ``bsc/<robot>/efforts/thrusters``, ``bsc/<robot>/efforts/valves``,
+``bsc/<robot>/alerts``).
 
 Times: ``t_ns`` is SENSOR time, the timestamp of the F/T sample epoch the estimate belongs to
 (same clock as the CAN frame timestamps). The publish time is not part of the payload, so that a
@@ -67,6 +68,23 @@ class ThrusterEffort:
     commanded_moment_nm: Vec3
     commanded_t_ns: int
     valves: int
+    good: bool
+    flags: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ValveWrenches:
+    """The thruster filter's learned per-valve wrenches as of the epoch at sensor time ``t_ns``
+    (:mod:`gateway.estimator.thrusters`): ``wrench`` the n x 6 numbers, valve by valve, of what
+    each valve exerts while open ``[force (N); moment about C (N m)]``, body frame;
+    ``force_sigma_n`` (n,) each one's force uncertainty (1 sigma, N: the root of its force
+    covariance's trace); ``good`` and ``flags`` those of the same epoch's :class:`ThrusterEffort`.
+    Published at most every 10 ms of sensor time (:mod:`gateway.pipeline`); what the thruster loop
+    of ``bsc control`` allocates with (:mod:`gateway.control.thrusters`)."""
+
+    t_ns: int
+    wrench: tuple[float, ...]
+    force_sigma_n: tuple[float, ...]
     good: bool
     flags: tuple[str, ...] = ()
 

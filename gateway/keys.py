@@ -14,9 +14,12 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
                                                                     <arm>/torque_cmd, imu, thrusters)
     bsc/<robot>/efforts/joints/<arm>              JointEfforts      estimated joint torques of an arm
     bsc/<robot>/efforts/thrusters                 ThrusterEffort    estimated thruster wrench
+    bsc/<robot>/efforts/valves                    ValveWrenches     the thruster filter's learned per-valve
+                                                                    wrenches (at most every 10 ms)
     bsc/<robot>/alerts                            Alert             monitor / analyze alerts
     bsc/<robot>/commands/drives/<arm>             DriveCommand      the compensator's drive command
                                                                     (bsc control; gateway/control/)
+    bsc/<robot>/commands/thrusters                ThrusterValves    the compensator's valve commands
     bsc/<robot>/commands/status                   Alert             the compensator's loop transitions
 
 Payloads are encoded by :mod:`gateway.codec`. Subscribe to ``sensors(robot)`` for every sample
@@ -32,7 +35,7 @@ from __future__ import annotations
 from gateway.errors import GatewayError
 from drivers.samples import (BusHealth, DeviceHealth, ImuSample, JointSample, ThrusterCommand, TorqueCommand,
                              ValveCommand, WrenchSample)
-from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+from gateway.efforts import Alert, JointEfforts, ThrusterEffort, ValveWrenches
 
 ROOT = "bsc"
 _FORBIDDEN = set("*$?#/ ")
@@ -97,6 +100,11 @@ def thruster_effort(robot: str) -> str:
     return f"{robot_root(robot)}/efforts/thrusters"
 
 
+def valve_wrenches(robot: str) -> str:
+    """The thruster filter's learned per-valve wrenches (:class:`gateway.efforts.ValveWrenches`)."""
+    return f"{robot_root(robot)}/efforts/valves"
+
+
 def alerts(robot: str) -> str:
     return f"{robot_root(robot)}/alerts"
 
@@ -137,6 +145,11 @@ def drive_commands(robot: str) -> str:
     return f"{robot_root(robot)}/commands/drives/**"
 
 
+def thruster_valves(robot: str) -> str:
+    """The thrusters' valve commands, published by the compensator (``bsc control``)."""
+    return f"{robot_root(robot)}/commands/thrusters"
+
+
 def control_status(robot: str) -> str:
     """The compensator's loop transitions (Alert records), in the controller's key space because
     that role may publish nowhere else."""
@@ -173,6 +186,8 @@ def for_sample(robot: str, sample) -> str:
         return joint_efforts(robot, sample.arm)
     if isinstance(sample, ThrusterEffort):
         return thruster_effort(robot)
+    if isinstance(sample, ValveWrenches):
+        return valve_wrenches(robot)
     if isinstance(sample, Alert):
         return alerts(robot)
     raise TypeError(f"no key for {type(sample).__name__}")

@@ -14,6 +14,15 @@ Every decoded sample, every computed effort and (on request) every health report
 samples come first, then the efforts they completed (one frame per call: exactly the order of
 the first wave). While ``emit`` runs, :attr:`Pipeline.log_ns` is the timestamp of the frame
 that produced the object (its log time in a recording). Nothing here does I/O or owns a thread.
+
+The thruster filter's learned per-valve wrenches (:class:`gateway.efforts.ValveWrenches`, what
+``bsc control``'s thruster loop allocates with) are emitted at most once per
+:data:`VALVE_WRENCH_PERIOD_NS` of sensor time: right after the first valve command sample of each
+such window has been fed, the filter as of the latest epoch computed, with that epoch's time and
+thruster quality (none again before a newer epoch). The estimator is fed up to that sample, then
+on: where the record is taken depends only on the samples, never on how the frames were split
+into calls, so a replay reproduces it byte for byte, and in the same place among the efforts (after
+those of the epochs computed before it).
 """
 from __future__ import annotations
 
@@ -28,8 +37,8 @@ from drivers.health import DEFAULT_TIMING, SourceTiming
 from drivers.kernel import DriverCore, columns_from_messages
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import keys
-from gateway.efforts import JointEfforts, ThrusterEffort
-from gateway.estimator.core import CoreSettings, EstimatorCore
+from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
+from gateway.estimator.core import VALVES, CoreSettings, EstimatorCore
 from robot_description import Robot
 from robot_description.thrusters import ThrusterLayout
 
@@ -37,7 +46,9 @@ Emit = Callable[[str, object], None]
 RowsOut = Callable[[np.ndarray, np.ndarray], None]      # (rows, log time of each row)
 # the attribute that picks the key of a sample type (None: one key for the type)
 _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "device", JointEfforts: "arm",
-             ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None}
+             ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None,
+             ValveWrenches: None}
+VALVE_WRENCH_PERIOD_NS = 10_000_000     # the learned per-valve wrenches: at most one record per 10 ms (100 Hz)
 
 
 class PipelineError(GatewayError, ValueError):
@@ -72,6 +83,9 @@ class Pipeline:
             raise PipelineError(f"the model {model.name!r} must have the arms and joints of the robot {robot.name!r}")
         self.estimator = EstimatorCore(model, layout=layout, settings=settings) if estimate else None
         self._one_log = np.zeros(1, dtype=np.int64)
+        self._valve_window = np.iinfo(np.int64).min     # the latest valve-wrench window opened
+        self._last_epoch: tuple[int, np.ndarray] | None = None     # (t_ns, thruster flags) of the latest effort row
+        self._valves_t: int | None = None               # the epoch of the latest valve wrenches emitted
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -128,9 +142,16 @@ class Pipeline:
                     emit(self.key(obj), obj)
         est = self.estimator
         if est is not None:
-            rows = est.feed(events)
-            if len(rows):
-                self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
+            lo = 0
+            for hi in self._valve_cuts(events):
+                if hi > lo:
+                    part = events[lo:hi]
+                    rows = est.feed(part)
+                    if len(rows):
+                        self._efforts(rows, t_frame[part["frame"][rows["cause"]]])
+                    lo = hi
+                if hi < len(events) or self._cut_last:
+                    self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]))
             alarms = est.thruster_alarms()
             if alarms:
                 self.log_ns = int(t_frame[-1])
@@ -145,6 +166,34 @@ class Pipeline:
             alarms = self.estimator.thruster_alarms()
             if alarms:
                 self._thruster_alarms(alarms)
+
+    def _valve_cuts(self, events: np.ndarray) -> list[int]:
+        """Where to stop feeding the estimator in ``events`` to take the valve wrenches: the index
+        after each valve command sample that opens a new window of :data:`VALVE_WRENCH_PERIOD_NS`,
+        then ``len(events)`` (:attr:`_cut_last`: whether that last one is such a stop too)."""
+        v = np.flatnonzero(events["kind"] == VALVES)
+        self._cut_last = False
+        if not len(v):
+            return [len(events)]
+        w = events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS
+        seen = np.maximum.accumulate(np.concatenate(([self._valve_window], w)))
+        cuts = (v[w > seen[:-1]] + 1).tolist()
+        self._valve_window = int(seen[-1])
+        self._cut_last = bool(cuts) and cuts[-1] == len(events)
+        return cuts if self._cut_last else cuts + [len(events)]
+
+    def _valve_wrenches(self, log_ns: int) -> None:
+        """The thruster filter's learned per-valve wrenches as of the latest epoch computed, on
+        ``bsc/<robot>/efforts/valves`` (once per epoch)."""
+        last = self._last_epoch
+        if last is None or last[0] == self._valves_t:
+            return
+        self._valves_t = last[0]
+        W, sigma = self.estimator.valve_wrenches()
+        flags = self.estimator.thruster_flags(last[1])
+        self.log_ns = log_ns
+        self.emit(keys.valve_wrenches(self.name),
+                  ValveWrenches(last[0], tuple(W.ravel().tolist()), tuple(sigma.tolist()), not flags, flags))
 
     def _thruster_alarms(self, alarms: list[dict]) -> None:
         """The estimator's thruster faults (gateway/estimator/fdi.py) as alerts on
@@ -166,6 +215,7 @@ class Pipeline:
 
     def _efforts(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
         self.efforts += len(rows) * (self.estimator.n_arms + 1)
+        self._last_epoch = (int(rows["t_ns"][-1]), rows["flags"][-1].copy())
         if self.on_efforts is not None:
             self.on_efforts(rows, log_ns)
         else:

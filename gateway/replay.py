@@ -90,6 +90,7 @@ class OfflineReport:
     good_efforts: int = 0
     health_reports: int = 0
     alerts: int = 0
+    valve_wrenches: int = 0                      # the thruster filter's learned per-valve wrenches
     rejections: dict[str, int] = dataclasses.field(default_factory=dict)
     rejections_by_device: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
     by_key: dict[str, int] = dataclasses.field(default_factory=dict)
@@ -126,6 +127,7 @@ class EffortCheck:
     first_difference: str | None = None
     kernels_recorded: str | None = None
     kernels_now: str = ""
+    not_in_log: dict[str, int] = dataclasses.field(default_factory=dict)   # topic -> replayed, not compared
 
     @property
     def same_kernels(self) -> bool:
@@ -141,18 +143,21 @@ class EffortCheck:
                else f"v{self.kernels_recorded}")
         if self.recorded == 0:
             return "the log holds no efforts to compare with"
+        note = "".join(f" ({n} on {t} not compared: the log has none, recorded before the gateway published them)"
+                       for t, n in sorted(self.not_in_log.items()))
         if self.ok and self.identical == self.recorded:
-            return f"all {self.recorded} efforts byte-identical to the log's (kernels v{self.kernels_now})"
+            return f"all {self.recorded} efforts byte-identical to the log's (kernels v{self.kernels_now})" + note
         if self.ok:
             return (f"the log's efforts came from kernels {rec}, these are v{self.kernels_now}: "
-                    f"{self.identical} byte-identical, {self.close} within {CHECK_RTOL:g} relative, none beyond")
+                    f"{self.identical} byte-identical, {self.close} within {CHECK_RTOL:g} relative, none beyond"
+                    + note)
         why = [f"{self.differ} beyond {CHECK_RTOL:g} relative"] if self.differ else []
         if self.close and self.same_kernels:
             why.append(f"{self.close} not byte-identical although the kernels are the same (v{self.kernels_now})")
         if self.recorded != self.replayed:
             why.append(f"{self.recorded} recorded, {self.replayed} replayed")
         return (f"efforts DIFFER from the log's (kernels {rec}, now v{self.kernels_now}): " + "; ".join(why)
-                + (f"; first: {self.first_difference}" if self.first_difference else ""))
+                + (f"; first: {self.first_difference}" if self.first_difference else "") + note)
 
     def to_json(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -189,6 +194,10 @@ def _without_envelope(record: dict) -> dict:
     return {k: v for k, v in record.items() if k not in ("type", "v")}
 
 
+LATER_EFFORT_TOPICS = ("/efforts/valves",)
+"""Effort topics a gateway did not always publish: a log without any of them is compared on the rest."""
+
+
 def compare_efforts(recorded: str | os.PathLike[str], replayed: str | os.PathLike[str]) -> EffortCheck:
     """Every effort message of ``replayed`` against ``recorded``'s, topic by topic in file order."""
     from gateway import KERNELS
@@ -202,6 +211,9 @@ def compare_efforts(recorded: str | os.PathLike[str], replayed: str | os.PathLik
     ctx = read_context(recorded)
     check = EffortCheck(kernels_recorded=ctx.metadata.get(SESSION_METADATA, {}).get("kernels"), kernels_now=KERNELS)
     old, new = efforts(recorded), efforts(replayed)
+    for topic in sorted(set(new) - set(old)):
+        if topic.endswith(LATER_EFFORT_TOPICS):           # a log from before they were published
+            check.not_in_log[topic] = len(new.pop(topic))
     for topic in sorted(set(old) | set(new)):
         a, b = old.get(topic, []), new.get(topic, [])
         check.recorded += len(a)
@@ -256,7 +268,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                           "own robot (no other robot or model, no time window, no CAN id or topic selection)",
                           option="check")
     from drivers.samples import BusHealth, DeviceHealth
-    from gateway.efforts import Alert, JointEfforts, ThrusterEffort
+    from gateway.efforts import Alert, JointEfforts, ThrusterEffort, ValveWrenches
     from gateway.engine import Session, Sink
     from gateway.engine.sinks import RecorderSink
     from gateway.log.frames import mcap_frames, read_ahead
@@ -329,6 +341,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                         kinds["health"] += 1
                     elif isinstance(obj, Alert):
                         kinds["alerts"] += 1
+                    elif isinstance(obj, ValveWrenches):
+                        kinds["valve_wrenches"] += 1
                     elif isinstance(obj, (JointEfforts, ThrusterEffort)):
                         kinds["efforts"] += 1
                         kinds["good_efforts"] += bool(obj.good)
@@ -404,7 +418,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             source_recovered=Path(src) != Path(path), frames_in=frames,
             frames_skipped=dict(skipped), samples=kinds["samples"], efforts=kinds["efforts"],
             good_efforts=kinds["good_efforts"], health_reports=kinds["health"],
-            alerts=kinds["alerts"], rejections=rejections, rejections_by_device=per_device,
+            alerts=kinds["alerts"], valve_wrenches=kinds["valve_wrenches"], rejections=rejections,
+            rejections_by_device=per_device,
             by_key=dict(sorted(by_key.items())), log_start_ns=first, log_end_ns=last,
             log_duration_s=dur, wall_s=wall, speed_x_realtime=dur / wall if wall > 0 else 0.0,
             frames_per_s=frames / wall if wall > 0 else 0.0,

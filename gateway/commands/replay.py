@@ -152,7 +152,7 @@ def _offline(args: argparse.Namespace, can_ids) -> int:
     print(f"bsc replay: {r.frames_in} frames, {r.log_duration_s:.3f} s of log in "
           f"{r.wall_s:.2f} s ({r.speed_x_realtime:.1f}x real time, {r.frames_per_s:.0f} frames/s)")
     print(f"bsc replay: {r.samples} samples, {r.efforts} efforts ({r.good_efforts} good), "
-          f"{r.health_reports} health reports, {r.alerts} alerts")
+          f"{r.valve_wrenches} learned valve wrenches, {r.health_reports} health reports, {r.alerts} alerts")
     if r.rejections:
         print("bsc replay: rejected: " + ", ".join(f"{k} {v}" for k, v in r.rejections.items()))
     if r.frames_skipped:

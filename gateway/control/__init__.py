@@ -5,7 +5,8 @@ estimates of what they really deliver.
   outer loop's desired torques and the gateway's efforts, returning the drives' commands;
 - :mod:`gateway.control.thrusters`: the thruster loop (:class:`ThrusterCompensator`): allocation
   and valve timing on the gateway's learned per-valve wrenches instead of the nominal layout;
-- :mod:`gateway.control.messages`: what it publishes (:class:`DriveCommand`) and under which keys;
+- :mod:`gateway.control.messages`: what it publishes (:class:`DriveCommand`, :class:`ThrusterValves`)
+  and under which keys;
 - :mod:`gateway.control.service`: ``bsc control``, the core on zenoh.
 
 docs/control.md describes the loop, its safety behaviour and what it achieves.

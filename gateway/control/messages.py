@@ -1,17 +1,20 @@
-"""What the compensator publishes: the joint drives' command (its zenoh keys are in :mod:`gateway.keys`).
-
-The thruster loop's records, :class:`ValveWrenches` (in: the learned per-valve wrenches) and
-:class:`ThrusterValves` (out: one step's valves), are not on zenoh yet (docs/control.md).
+"""What the compensator publishes: the joint drives' command and the thrusters' valves (their zenoh
+keys are in :mod:`gateway.keys`).
 
 ``bsc/<robot>/commands/drives/<arm>`` (``keys.drive_command``): a :class:`DriveCommand` per arm,
-the command the drives should apply. Only the controller role may publish under
-``bsc/<robot>/commands/**`` (deploy/zenoh/router.json5); the gateway never does.
+the command the drives should apply. ``bsc/<robot>/commands/thrusters``
+(``keys.thruster_valves``): a :class:`ThrusterValves`, the valves of the steps until the next
+commanded wrench. Only the controller role may publish under ``bsc/<robot>/commands/**``
+(deploy/zenoh/router.json5); the gateway never does.
 ``bsc/<robot>/commands/status`` (``keys.control_status``): the compensator's loop transitions (open
 <-> closed, per arm) as :class:`gateway.efforts.Alert` records, under the controller's key space
 because that role may publish nowhere else.
 
 Payloads are the house's JSON form (:func:`gateway.log.schema.record_of`:
-``{"type": "DriveCommand", "v": 1, ...}``), decoded strictly by :func:`decode_drive_command`.
+``{"type": "DriveCommand", "v": 1, ...}``), decoded strictly by :func:`decode_drive_command` and
+:func:`decode_thruster_valves`. What the thruster loop takes in, the gateway's learned per-valve
+wrenches, is :class:`gateway.efforts.ValveWrenches` (``bsc/<robot>/efforts/valves``; re-exported
+here).
 """
 from __future__ import annotations
 
@@ -19,8 +22,12 @@ import json
 import math
 from dataclasses import dataclass, fields
 
+from gateway.efforts import ValveWrenches
 from gateway.errors import GatewayError
 from gateway.log.schema import FORM_VERSION, record_of
+
+__all__ = ["ControlError", "DriveCommand", "ThrusterValves", "ValveWrenches", "decode_drive_command",
+           "decode_thruster_valves", "encode_drive_command", "encode_thruster_valves"]
 
 
 class ControlError(GatewayError, ValueError):
@@ -50,35 +57,29 @@ class DriveCommand:
 
 
 @dataclass(frozen=True, slots=True)
-class ValveWrenches:
-    """The gateway's learned per-valve wrenches at sensor time ``t_ns`` (the thruster filter's
-    state, :mod:`gateway.estimator.thrusters`): ``wrench`` the n x 6 numbers, valve by valve, of
-    what each valve exerts while open ``[force (N); moment about C (N m)]``, body frame;
-    ``force_sigma_n`` (n,) each one's force uncertainty (1 sigma, N: the root of its force
-    covariance's trace); ``good`` and ``flags`` those of the thruster efforts of the same epoch.
-    What the thruster loop (:mod:`gateway.control.thrusters`) allocates with."""
-
-    t_ns: int
-    wrench: tuple[float, ...]
-    force_sigma_n: tuple[float, ...]
-    good: bool
-    flags: tuple[str, ...] = ()
-
-
-@dataclass(frozen=True, slots=True)
 class ThrusterValves:
     """The thruster loop's valve command for the step at sensor time ``t_ns``: ``valves`` bit i =
     thruster i open; ``duty`` (n,) the allocation it times (fractions of full opening);
     ``closed``: False when the allocation used the NOMINAL wrenches (``flags`` says why:
     ``no-estimate``, ``stale:efforts``, ``estimate:not-good (<its flags>)``, ``disabled``; closed:
     ``limited:rate``, ``limited:magnitude``); ``saturated``: the commanded wrench needed more than
-    full opening (scaled down, direction kept); ``fault:thruster<i>``: thruster i excluded."""
+    full opening (scaled down, direction kept); ``fault:thruster<i>``: thruster i excluded.
+
+    ``following``: the valve masks of the next steps, ``step_ns`` apart (``bsc control`` sends the
+    valves up to the next commanded wrench at once, :meth:`gateway.control.ThrusterCompensator.schedule`);
+    ``()`` for one step. :meth:`masks` gives them all, the first step's first."""
 
     t_ns: int
     valves: int
     duty: tuple[float, ...]
     closed: bool
     flags: tuple[str, ...] = ()
+    following: tuple[int, ...] = ()
+    step_ns: int = 0
+
+    def masks(self) -> tuple[int, ...]:
+        """The valve mask of every step, from ``t_ns`` on, ``step_ns`` apart."""
+        return (self.valves, *self.following)
 
 
 def encode_drive_command(cmd: DriveCommand) -> bytes:
@@ -131,3 +132,30 @@ def decode_drive_command(payload: bytes | bytearray | memoryview | str) -> Drive
         raise ControlError("drive command: closed must be true or false")
     return DriveCommand(obj["arm"], obj["t_ns"], joints, numbers("torque_nm"), numbers("desired_nm"),
                         numbers("correction_nm"), obj["closed"], strings("flags"))
+
+
+def encode_thruster_valves(v: ThrusterValves) -> bytes:
+    """The JSON payload; a non-finite duty is refused (JSON has none)."""
+    try:
+        return json.dumps(record_of(v), allow_nan=False, separators=(",", ":")).encode()
+    except ValueError as exc:
+        raise ControlError(f"ThrusterValves: {exc}") from None
+
+
+def decode_thruster_valves(payload: bytes | bytearray | memoryview | str) -> ThrusterValves:
+    """Bytes -> :class:`ThrusterValves`; :class:`ControlError` on anything else (strict: the
+    record's fields with their types (:func:`gateway.codec.decode`), duties finite in [0, 1],
+    masks not negative, a positive ``step_ns`` when there are following steps)."""
+    from gateway import codec
+
+    try:
+        v = codec.decode(payload, {"ThrusterValves": ThrusterValves})
+    except codec.CodecError as exc:
+        raise ControlError(f"thruster valves: {exc}") from None
+    if not all(math.isfinite(d) and 0.0 <= d <= 1.0 for d in v.duty):
+        raise ControlError("thruster valves: duty must be fractions in [0, 1]")
+    if v.valves < 0 or any(m < 0 for m in v.following):
+        raise ControlError("thruster valves: valve masks cannot be negative")
+    if v.following and v.step_ns <= 0:
+        raise ControlError("thruster valves: following steps need a positive step_ns")
+    return v

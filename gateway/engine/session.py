@@ -35,7 +35,8 @@ class Sink:
 
     A sink with ``rows = True`` takes decoded samples and efforts as rows
     (:meth:`sample_rows`, :meth:`effort_rows`: an output that encodes rows directly, never
-    building an object per message); health still comes as objects to :meth:`emit`.
+    building an object per message); health, alerts and the learned valve wrenches still come
+    as objects to :meth:`emit`.
     """
 
     rows = False

@@ -824,6 +824,20 @@ class EstimatorCore:
         return self._out[:n]
 
     # -- output --------------------------------------------------------------------------------
+    def valve_wrenches(self) -> tuple[F64, F64]:
+        """The thruster filter's learned per-valve wrenches now (copies; read only): ``W`` (n, 6),
+        valve by valve ``[force (N); moment about C (N m)]``, body frame, and each valve's force
+        uncertainty (n,), N (1 sigma: the root of its force covariance's trace). Between two
+        epochs' computations the filter does not move, so this is its state after the latest."""
+        kf = self.kf
+        n = kf.n
+        var = np.diag(kf.P)[:6 * n].reshape(n, 6)[:, :3].sum(axis=1)
+        return kf.W.copy(), np.sqrt(var)
+
+    def thruster_flags(self, row_flags: np.ndarray) -> tuple[str, ...]:
+        """The flags of the thruster effort of an effort row's ``flags``, as published."""
+        return self._flags(row_flags, self._thr_bits, -1)
+
     def _flags(self, row_flags: np.ndarray, bits: np.ndarray, which: int) -> tuple[str, ...]:
         sel = row_flags[bits]
         key = (which, sel.tobytes())

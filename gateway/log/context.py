@@ -235,7 +235,8 @@ def key_scheme(wire_map) -> dict[str, str]:
            "observed_commands": keys.observed_commands(robot), "health": keys.health(robot),
            "efforts": keys.efforts(robot), "imu": keys.imu(robot),
            "thruster_command": keys.thruster_command(robot), "valve_command": keys.valve_command(robot),
-           "thruster_effort": keys.thruster_effort(robot), "alerts": keys.alerts(robot),
+           "thruster_effort": keys.thruster_effort(robot), "valve_wrenches": keys.valve_wrenches(robot),
+           "alerts": keys.alerts(robot),
            "health/device/imu": keys.device_health(robot, "imu"),
            "health/device/thrusters": keys.device_health(robot, "thrusters")}
     for name, spec in wire_map.buses.items():

@@ -8,7 +8,7 @@ import pytest
 import robot_description
 from drivers.kernel import columns_from_messages
 from drivers.samples import BusHealth, DeviceHealth
-from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
 from gateway.engine import Session, Sink
 from gateway.engine.warm import frames as synthetic_frames
 
@@ -89,10 +89,14 @@ def test_row_and_object_sinks_see_the_same_efforts(robot, frames):
     assert efforts and [o for o, _ in efforts] == ses.pipeline.estimator.efforts(got_rows)
     assert [t for _, t in efforts] == np.repeat(row_log, 3).tolist()
     events = np.concatenate([e for e, _ in rows.samples])
-    samples = [obj for _, obj, _ in objs.got if not isinstance(obj, (JointEfforts, ThrusterEffort, BusHealth,
-                                                                       DeviceHealth))]
+    samples = [obj for _, obj, _ in objs.got if not isinstance(obj, (JointEfforts, ThrusterEffort, ValveWrenches,
+                                                                       BusHealth, DeviceHealth))]
     assert samples == ses.pipeline.drivers.to_samples(events)
-    assert rows.health and all(isinstance(h, (BusHealth, DeviceHealth)) for h in rows.health)
+    # objects to both: health, and the learned valve wrenches (no rows of their own)
+    health = [h for h in rows.health if isinstance(h, (BusHealth, DeviceHealth))]
+    valves = [v for v in rows.health if isinstance(v, ValveWrenches)]
+    assert health and valves and len(health) + len(valves) == len(rows.health)
+    assert valves == [o for _, o, _ in objs.got if isinstance(o, ValveWrenches)]
 
 
 def test_frames_as_rows_give_what_frames_one_by_one_give(robot, frames):
@@ -104,12 +108,16 @@ def test_frames_as_rows_give_what_frames_one_by_one_give(robot, frames):
     with Session(robot, [batch]) as ses:
         for lo in range(0, len(cols), 97):                   # any split
             ses.feed_frames(cols[lo:lo + 97])
-    # within one call samples come first, then the efforts they completed: the same two sequences
+    # within one call samples come first, then the efforts they completed: the same sequences of
+    # efforts, of learned valve wrenches and of samples
     def split(got):
         eff = [(k, o) for k, o, _ in got if isinstance(o, (JointEfforts, ThrusterEffort))]
-        return eff, [(k, o) for k, o, _ in got if not isinstance(o, (JointEfforts, ThrusterEffort))]
+        valves = [(k, o) for k, o, _ in got if isinstance(o, ValveWrenches)]
+        return eff, valves, [(k, o) for k, o, _ in got if not isinstance(o, (JointEfforts, ThrusterEffort,
+                                                                             ValveWrenches))]
 
     assert split(batch.got) == split(one.got) and len(split(one.got)[0]) == 900
+    assert len(split(one.got)[1]) >= 25
 
 
 def test_recorder_sink_writes_rows_in_the_order_they_were_fed(robot, frames, tmp_path):

@@ -13,6 +13,7 @@ from pathlib import Path
 import can
 import pytest
 
+from gateway import keys
 from gateway.log import context, reader
 from gateway.cli import main
 from gateway.log import canlog
@@ -349,9 +350,19 @@ def test_a_clock_set_mid_log_is_reported_and_replayed(candump, tmp_path, capsys)
     # after the jump: the clean log's efforts, byte for byte, but for what the joint filter
     # estimates: it started again at the jump (a silence of decades to it), so its full torques
     # and F/T bias converge to the clean log's instead (tests/gateway/estimator/test_joint_filter.py)
+    # the thruster filter's per-valve force uncertainty grows over the silence too (its random
+    # walk), so the learned valve wrenches' force_sigma_n differ, not the wrenches (those of the
+    # same span as the efforts compared)
+    since = ref[keys.thruster_effort("paper_robot")][-100][0]
     for k in ref:
-        assert len(got[k]) >= 100
-        for (tg, bg), (tr, br) in zip(got[k][-100:], ref[k][-100:]):
+        last = sum(t >= since for t, _ in ref[k]) if k.endswith("/efforts/valves") else 100
+        assert len(got[k]) >= last >= 5
+        for (tg, bg), (tr, br) in zip(got[k][-last:], ref[k][-last:]):
+            if k.endswith("/efforts/valves"):
+                g, r = json.loads(bg), json.loads(br)
+                assert tg == tr and {x: v for x, v in g.items() if x != "force_sigma_n"} == \
+                    {x: v for x, v in r.items() if x != "force_sigma_n"}
+                continue
             if "/efforts/joints/" not in k:
                 assert (tg, bg) == (tr, br)
                 continue

@@ -23,7 +23,7 @@ import pytest
 import robot_description
 from drivers import frames, wire
 from drivers.devices import listeners_for
-from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, WrenchSample
+from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway import KERNELS, codec, keys
 from gateway import replay as rp
 from gateway.log import context, errors, reader, scan
@@ -117,8 +117,9 @@ class StandInPipeline:
 
 # ----------------------------------------------------------------------------- sessions
 
-def synthetic_frames(robot, n_ms: int, seed: int = 1):
-    """``(bus, can.Message)`` in ARRIVAL order for ``n_ms`` ms of a live-like session.
+def synthetic_frames(robot, n_ms: int, seed: int = 1, valves: bool = False):
+    """``(bus, can.Message)`` in ARRIVAL order for ``n_ms`` ms of a live-like session
+    (``valves``: with the valve commands of every millisecond, so the estimator's epochs are whole).
 
     Timestamps are wall-clock floats with sub-nanosecond digits (as python-can gives them),
     and the spacecraft bus is fed 0.7 ms late relative to the arm buses (two notifier threads),
@@ -152,6 +153,8 @@ def synthetic_frames(robot, n_ms: int, seed: int = 1):
                             tuple(rnd.uniform(-0.5, 0.5) for _ in range(3)),
                             tuple(rnd.uniform(-0.1, 0.1) for _ in range(3)))
             sc += [(wire.SPACECRAFT_BUS, m, t) for m in frames.encode_imu(imu, time_us=k * 1000)]
+        if valves:
+            sc.append((wire.SPACECRAFT_BUS, frames.encode_valves(ValveCommand(0, k, 5 if k % 20 < 4 else 0)), t))
         if k % 10 == 0:
             sc += [(wire.SPACECRAFT_BUS, m, t) for m in frames.encode_thruster(ThrusterCommand(
                 0, k // 10, (1.0, 0.0, 0.0), (0.0, 0.0, 0.1), valves=5))]
@@ -300,20 +303,23 @@ def test_offline_output_holds_samples_only_when_asked_and_copies_frames_exactly(
     assert frames(out) == frames(path) and len(frames(path)) == full.frames_in
 
 
-def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40, old_form=False):
+def _live_log(path, robot, *, kernels=None, nudge=0.0, at=40, old_form=False, valves=True):
     """A live-recorded log (real pipeline) whose ``at``-th JointEfforts has its first full torque
     scaled by ``1 + nudge``, and whose session metadata names ``kernels`` (default: these);
     ``old_form``: samples and efforts written as logs were before the one JSON form (no ``type``
-    and ``v``)."""
+    and ``v``); ``valves=False``: without the learned per-valve wrenches (a log from before the
+    gateway published them)."""
     from gateway.pipeline import Pipeline
 
-    frame_list = synthetic_frames(robot, 200, seed=5)
+    frame_list = synthetic_frames(robot, 200, seed=5, valves=True)
     seen = [0]
     with Recorder(path, queue_size=1 << 22) as rec:
         extra = {"kernels": kernels} if kernels is not None else {}
         rec.add_session_context(**context.session_context(robot, extra=extra))
 
         def emit(key, obj):
+            if not valves and key == keys.valve_wrenches(robot.name):
+                return
             if isinstance(obj, JointEfforts):
                 seen[0] += 1
                 if seen[0] == at and nudge:
@@ -344,6 +350,23 @@ def test_check_finds_the_replay_identical_to_live(robot, tmp_path, capsys):
     assert f"check: all {efforts_count(log)} efforts byte-identical to the log's (kernels v{KERNELS})" in out
     report = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())["check"]
     assert report["ok"] and report["identical"] == report["recorded"] == report["replayed"] > 100
+    # the learned per-valve wrenches are among them
+    assert len(efforts_by_topic(log)[keys.valve_wrenches(ROBOT)]) >= 15 and report["not_in_log"] == {}
+
+
+def test_check_of_a_log_from_before_the_valve_wrenches(robot, tmp_path, capsys):
+    """A log recorded before the gateway published the learned per-valve wrenches is checked on
+    its other efforts, saying that those were not compared."""
+    from gateway.cli import main
+
+    log = _live_log(tmp_path / "old.mcap", robot, valves=False)
+    assert keys.valve_wrenches(ROBOT) not in efforts_by_topic(log)
+    assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    n = len(efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME)[keys.valve_wrenches(ROBOT)])
+    assert f"byte-identical to the log's (kernels v{KERNELS}) ({n} on {keys.valve_wrenches(ROBOT)} not compared" in out
+    report = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())["check"]
+    assert report["ok"] and report["not_in_log"] == {keys.valve_wrenches(ROBOT): n} and n >= 15
 
 
 def test_check_of_a_log_from_before_the_one_json_form(robot, tmp_path, capsys):
@@ -357,7 +380,7 @@ def test_check_of_a_log_from_before_the_one_json_form(robot, tmp_path, capsys):
     assert main(["replay", str(log), "--out", str(tmp_path / "out"), "--check", "--quiet"]) == 0
     report = json.loads((tmp_path / "out" / rp.REPORT_NAME).read_text())["check"]
     assert report["ok"] and report["identical"] == report["recorded"] == report["replayed"] > 100
-    replayed = next(iter(efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME).values()))[0]
+    replayed = efforts_by_topic(tmp_path / "out" / rp.OUTPUT_NAME)[keys.joint_efforts(ROBOT, "arm0")][0]
     assert replayed.startswith(b'{"type":"JointEfforts","v":1,')
 
 

@@ -151,16 +151,19 @@ K = {
     "device_health": f"bsc/{ROBOT}/health/device/imu",
     "joint_efforts": f"bsc/{ROBOT}/efforts/joints/arm0",
     "thruster_effort": f"bsc/{ROBOT}/efforts/thrusters",
+    "valve_wrenches": f"bsc/{ROBOT}/efforts/valves",
     "alerts": f"bsc/{ROBOT}/alerts",
     "observed_torque_cmd": f"bsc/{ROBOT}/sensors/commands/torque/arm0/j1",
     "torque_cmd": f"bsc/{ROBOT}/commands/torque/arm0/j1",
-    "thruster_cmd": f"bsc/{ROBOT}/commands/thrusters",
+    "thruster_cmd": f"bsc/{ROBOT}/commands/thrusters",          # bsc control's valve commands
+    "drive_cmd": f"bsc/{ROBOT}/commands/drives/arm0",
+    "control_status": f"bsc/{ROBOT}/commands/status",
 }
 # who -> the keys it may publish (every other key of K is refused); "intruder" has valid
 # credentials but no role in the access rules.
 ALLOWED = {
-    "gateway": set(K) - {"torque_cmd", "thruster_cmd"},     # observes commands, never issues them
-    "controller": {"torque_cmd", "thruster_cmd"},
+    "gateway": set(K) - {"torque_cmd", "thruster_cmd", "drive_cmd", "control_status"},   # observes commands only
+    "controller": {"torque_cmd", "thruster_cmd", "drive_cmd", "control_status"},
     "observer": set(),
     "intruder": set(),
 }
