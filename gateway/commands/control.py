@@ -1,15 +1,19 @@
 """``bsc control``: close the inner loop: the joint drives' commands corrected from the gateway's
-estimates (docs/control.md).
+estimates, and the thrusters' valves allocated and timed on the per-valve wrenches the gateway
+learns (docs/control.md).
 
     bsc control --robot paper_robot --connect tcp/127.0.0.1:7447
     bsc control --robot paper_robot --zenoh-config deploy/zenoh/controller.json5 --duration 60
 
 Subscribes to ``bsc/<robot>/efforts/joints/**`` and the desired torques the gateway observes on
-the arm buses (``bsc/<robot>/sensors/commands/torque/**``); publishes each arm's corrected drive
-command on ``bsc/<robot>/commands/drives/<arm>`` and the loop's transitions on
-``bsc/<robot>/commands/status``. In a deployment it runs as the ``controller`` role, the only one
-allowed to publish there. ``--open-loop`` passes the desired torques through unchanged (the same
-path, no correction).
+the arm buses (``bsc/<robot>/sensors/commands/torque/**``), and to the learned per-valve wrenches
+(``bsc/<robot>/efforts/valves``), the commanded wrench the gateway observes on the spacecraft bus
+(``bsc/<robot>/sensors/commands/thrusters``) and the gateway's alerts (its thruster faults);
+publishes each arm's corrected drive command on ``bsc/<robot>/commands/drives/<arm>``, the valves
+on ``bsc/<robot>/commands/thrusters`` and the loops' transitions on ``bsc/<robot>/commands/status``.
+In a deployment it runs as the ``controller`` role, the only one allowed to publish there.
+``--open-loop`` passes the desired torques through unchanged (the same path, no correction) and
+commands no valve; ``--joints-only`` leaves the valves to the flight software.
 """
 from __future__ import annotations
 
@@ -27,7 +31,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="paper_robot", metavar="NAME|FILE",
                    help="robot description: arms, joints, torque limits (default paper_robot)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
-    p.add_argument("--open-loop", action="store_true", help="publish the desired torques unchanged (no correction)")
+    p.add_argument("--open-loop", action="store_true",
+                   help="publish the desired torques unchanged (no correction) and no valve command")
+    p.add_argument("--joints-only", action="store_true",
+                   help="no thruster loop: the robot's valves keep the flight software's commands")
+    p.add_argument("--thrusters", default=None, metavar="NAME|FILE",
+                   help="the thruster layout, as bsc gateway takes it (default: the gateway's default layout)")
+    p.add_argument("--valve-min-on", type=float, default=0.004, metavar="S",
+                   help="the valves' minimum on-time, their minimum impulse bit (default 0.004 s)")
     g = p.add_argument_group("joint loop (docs/control.md)")
     g.add_argument("--kp", type=float, default=d.kp, help=f"proportional gain on the torque error (default {d.kp:g})")
     g.add_argument("--ki", type=float, default=d.ki_per_s, metavar="PER_S",
@@ -48,6 +59,8 @@ def settings_from_args(args: argparse.Namespace):
 
     if args.duration is not None and args.duration <= 0:
         raise UserError("--duration must be positive")
+    if not args.valve_min_on > 0:
+        raise UserError("--valve-min-on must be positive")
     # the settings' own checks name their fields; say them as the flags the user typed
     flags = {"kp": "--kp", "ki_per_s": "--ki", "max_correction": "--max-correction", "max_rate_per_s": "--max-rate",
              "stale_s": "--stale", "resume_good": "--resume-good"}
@@ -74,23 +87,31 @@ def run(args: argparse.Namespace) -> int:
     from gateway.control.service import ControlService
     from gateway.zenoh_config import config_from_args
 
+    from robot_description.thrusters import ThrusterLayout
+
     settings = settings_from_args(args)
     robot = robot_description.load(args.robot)
+    layout = None if args.joints_only else ThrusterLayout.load(args.thrusters)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     stop, restore = stop_on_sigterm()
     try:
         with zenoh.open(config_from_args(args)) as session, \
-                ControlService(session, robot, settings, enabled=not args.open_loop) as ctl:
+                ControlService(session, robot, settings, enabled=not args.open_loop, layout=layout,
+                               valve_min_on_s=args.valve_min_on) as ctl:
             mode = "open loop (pass-through)" if args.open_loop else "closed loop"
-            print(f"bsc control: robot {robot.name}, {mode}, publishing on {keys.drive_commands(robot.name)}",
+            out = [keys.drive_commands(robot.name)] + ([keys.thruster_valves(robot.name)] if ctl.thrusters else [])
+            print(f"bsc control: robot {robot.name}, {mode}, publishing on {', '.join(out)}",
                   file=sys.stderr, flush=True)
             try:
                 ctl.run(stop, args.duration)
             except KeyboardInterrupt:
                 pass
+            valves = (f"; valve commands out: {ctl.valves_published['closed']} on learned wrenches, "
+                      f"{ctl.valves_published['open']} on nominal ones" if ctl.thrusters else "")
             print(f"bsc control: {ctl.received} samples in ({ctl.rejected} rejected), drive commands out: "
-                  f"{ctl.published['closed']} closed loop, {ctl.published['open']} open loop; "
-                  f"{sum(a.state == 'raised' for a in ctl.alerts)} fallback(s) to open loop", file=sys.stderr)
+                  f"{ctl.published['closed']} closed loop, {ctl.published['open']} open loop{valves}; "
+                  f"{sum(a.state == 'raised' and a.rule == 'compensation-open-loop' for a in ctl.alerts)} "
+                  "fallback(s)", file=sys.stderr)
     finally:
         restore()
     return 0

@@ -1,25 +1,32 @@
 """``bsc control`` over zenoh: the joint loop (:class:`JointCompensator`) between the gateway and the
-robot's drives.
+robot's drives, and the thruster loop (:class:`ThrusterCompensator`) between the gateway and the
+robot's valves.
 
 :class:`ControlService` is given an open zenoh session (it owns only what it declares)::
 
-    with ControlService(session, robot) as ctl:         # subscribers and publishers declared
+    with ControlService(session, robot, layout=layout) as ctl:   # subscribers and publishers declared
         ctl.run(stop_event, duration_s=None)
     # close(): undeclared (harmless twice)
 
 Subscriptions: ``bsc/<robot>/efforts/joints/**`` (the gateway's estimates) and
 ``bsc/<robot>/sensors/commands/torque/**`` (the outer loop's desired torques, as the gateway
-observed them on the arm buses). Publications, only under ``bsc/<robot>/commands/**`` (the
-controller role's key space, deploy/zenoh/router.json5): each arm's :class:`DriveCommand` on
-``commands/drives/<arm>`` every time the arm's desired torques are complete (the outer loop's
-rate), and the loop's transitions (open/closed) as :class:`gateway.efforts.Alert` records on
-``commands/status``.
+observed them on the arm buses); with a thruster ``layout``, also ``bsc/<robot>/efforts/valves``
+(the thruster filter's learned per-valve wrenches), ``bsc/<robot>/sensors/commands/thrusters``
+(the outer loop's commanded wrench, observed on the spacecraft bus) and ``bsc/<robot>/alerts``
+(the fault detector's ``thruster-fault`` alerts). Publications, only under
+``bsc/<robot>/commands/**`` (the controller role's key space, deploy/zenoh/router.json5): each
+arm's :class:`DriveCommand` on ``commands/drives/<arm>`` every time the arm's desired torques are
+complete (the outer loop's rate); on each newer commanded wrench a :class:`ThrusterValves` on
+``commands/thrusters``, the valves of the steps until the next one (``block_steps`` steps of
+``step_ns``, from one step after the commanded wrench's time); the loops' transitions (open/closed,
+a thruster excluded) as :class:`gateway.efforts.Alert` records on ``commands/status``.
 
-Samples are handled on zenoh's callback thread under one lock, at once (the core costs
-microseconds; a queue would only add delay): latest-wins by construction, the core keeps only
-the newest estimate and desired torques. A bad payload is counted (``rejected``), never raised.
-Staleness is judged on the sensor clock the efforts and commands share: when the gateway stops,
-the next desired torques find no fresh estimate and the command goes out open loop.
+Samples are handled on zenoh's callback thread under one lock, at once (the cores cost
+microseconds, an allocation a few hundred; a queue would only add delay): latest-wins by
+construction, the cores keep only the newest estimates and commands. A bad payload is counted
+(``rejected``), never raised. Staleness is judged on the sensor clock the efforts and commands
+share: when the gateway stops, the next desired torques (commanded wrench) find no fresh estimate
+and the command goes out open loop (on the nominal allocation).
 """
 from __future__ import annotations
 
@@ -27,24 +34,50 @@ import logging
 import threading
 import time
 
-from drivers.samples import TorqueCommand
+from drivers.samples import ThrusterCommand, TorqueCommand
 from gateway import codec, keys
 from gateway.control.joints import JointCompensator, JointLoopSettings, LoopEvent
-from gateway.control.messages import encode_drive_command
-from gateway.efforts import Alert, JointEfforts
+from gateway.control.messages import encode_drive_command, encode_thruster_valves
+from gateway.control.thrusters import LOOP as THRUSTER_LOOP, ThrusterCompensator, ThrusterLoopSettings
+from gateway.efforts import Alert, JointEfforts, ValveWrenches
 
 log = logging.getLogger("gateway.control")
 
 
+def valve_timing() -> tuple[int, int]:
+    """(step_ns, block_steps) of the thruster loop's schedules, from the wire: a valve command is
+    good for one valve-command period (THRUSTER_VALVE_CMD, 1 ms); a schedule covers one
+    commanded-wrench period (THRUSTER_CMD, 10 ms), until the next commanded wrench."""
+    from drivers import wire
+
+    lay = wire.layouts("spacecraft")
+    step = lay[wire.VALVE_CMD_ID].cycle_ms * 1_000_000
+    return step, max(1, lay[wire.THRUSTER_FORCE_ID].cycle_ms * 1_000_000 // step)
+
+
 class ControlService:
-    def __init__(self, session, robot, settings: JointLoopSettings | None = None, *, enabled: bool = True):
+    """``layout`` (a :class:`robot_description.thrusters.ThrusterLayout`, the gateway's): run the
+    thruster loop too, its valves opened at least ``valve_min_on_s`` at a time (the valves' minimum
+    impulse bit); None: the joints only. ``enabled=False`` (``--open-loop``): the desired torques
+    pass through, and no valve command is published (the robot's valves keep the flight
+    software's)."""
+
+    def __init__(self, session, robot, settings: JointLoopSettings | None = None, *, enabled: bool = True,
+                 layout=None, thruster_settings: ThrusterLoopSettings | None = None, valve_min_on_s: float = 0.004):
         self.session, self.robot = session, robot
         self.name = robot.name
         keys.robot_root(self.name)                  # validates the name
         self.core = JointCompensator.for_robot(robot, settings, enabled=enabled)
+        self.step_ns, self.block_steps = valve_timing()
+        self.thrusters: ThrusterCompensator | None = None
+        if layout is not None and enabled:
+            min_on = max(1, round(valve_min_on_s * 1e9 / self.step_ns))
+            self.thrusters = ThrusterCompensator.for_layout(layout, min_on=min_on, settings=thruster_settings)
+        self._demand_ns: int | None = None          # the commanded wrench of the latest schedule
         self.received = 0
         self.rejected = 0
         self.published = {"closed": 0, "open": 0}
+        self.valves_published = {"closed": 0, "open": 0}
         self.alerts: list[Alert] = []
         self._lock = threading.Lock()
         self._subs: list = []
@@ -60,7 +93,11 @@ class ControlService:
                 self._pubs[a.name] = codec.declare_publisher(self.session, keys.drive_command(self.name, a.name))
             self._pubs["status"] = codec.declare_publisher(self.session, keys.control_status(self.name))
             root = keys.robot_root(self.name)
-            for key in (f"{root}/efforts/joints/**", f"{root}/sensors/commands/torque/**"):
+            subs = [f"{root}/efforts/joints/**", f"{root}/sensors/commands/torque/**"]
+            if self.thrusters is not None:
+                self._pubs[THRUSTER_LOOP] = codec.declare_publisher(self.session, keys.thruster_valves(self.name))
+                subs += [keys.valve_wrenches(self.name), keys.thruster_command(self.name), keys.alerts(self.name)]
+            for key in subs:
                 self._subs.append(self.session.declare_subscriber(key, self._on_sample))
         return self
 
@@ -95,12 +132,14 @@ class ControlService:
         self.feed(obj)
 
     def feed(self, obj) -> None:
-        """One decoded sample (an estimate or an observed command) through the core; publishes
-        the arm's drive command when its desired torques are complete."""
+        """One decoded sample (an estimate, an observed command or an alert) through the cores;
+        publishes the arm's drive command when its desired torques are complete, the valves until
+        the next commanded wrench on each newer commanded wrench."""
         with self._lock:
             if self._closed:
                 return
             self.received += 1
+            thr = self.thrusters
             if isinstance(obj, JointEfforts):
                 self.core.estimate(obj)
             elif isinstance(obj, TorqueCommand):
@@ -109,16 +148,39 @@ class ControlService:
                     cmd = self.core.command(arm)
                     codec.put(self._pubs[arm], encode_drive_command(cmd))
                     self.published["closed" if cmd.closed else "open"] += 1
-            for event in self.core.take_events():
+            elif thr is None:
+                pass
+            elif isinstance(obj, ValveWrenches):
+                thr.estimate(obj)
+            elif isinstance(obj, ThrusterCommand):
+                if self._demand_ns is None or obj.t_ns > self._demand_ns:
+                    # the keep-out mask of the flight software is not on the wire: every thruster
+                    # may be used (docs/control.md)
+                    self._demand_ns = obj.t_ns
+                    thr.observe(obj)
+                    v = thr.schedule(obj.t_ns + self.step_ns, self.block_steps, self.step_ns)
+                    codec.put(self._pubs[THRUSTER_LOOP], encode_thruster_valves(v))
+                    self.valves_published["closed" if v.closed else "open"] += 1
+            elif isinstance(obj, Alert):
+                thr.alert(obj)
+            events = self.core.take_events() + (thr.take_events() if thr is not None else [])
+            for event in events:
                 self._transition(event)
 
     def _transition(self, e: LoopEvent) -> None:
-        opened = e.state == "open"
-        alert = Alert(self.name, "actuator", e.arm, "compensation-open-loop", "warning" if opened else "info",
-                      "raised" if opened else "cleared", e.t_ns, e.t_ns,
-                      f"{e.arm}: compensation {'open loop' if opened else 'closed again'} ({e.reason})")
+        thruster = e.arm == THRUSTER_LOOP
+        if e.state == "fault":                      # a thruster the fault detector named: never fired
+            alert = Alert(self.name, "thruster", e.arm, "compensation-thruster-excluded", "warning", "raised",
+                          e.t_ns, e.t_ns, f"thrusters: {e.reason}")
+        else:
+            opened = e.state == "open"
+            what = ("nominal allocation" if opened else "learned wrenches again") if thruster else \
+                ("open loop" if opened else "closed again")
+            alert = Alert(self.name, "thruster" if thruster else "actuator", e.arm, "compensation-open-loop",
+                          "warning" if opened else "info", "raised" if opened else "cleared", e.t_ns, e.t_ns,
+                          f"{e.arm}: compensation {what} ({e.reason})")
         self.alerts.append(alert)
-        log.log(logging.WARNING if opened else logging.INFO, "%s", alert.message)
+        log.log(logging.WARNING if alert.state == "raised" else logging.INFO, "%s", alert.message)
         codec.put(self._pubs["status"], codec.encode(alert))
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:

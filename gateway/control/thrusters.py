@@ -159,6 +159,7 @@ class ThrusterCompensator:
         self._demand: tuple[int, np.ndarray, np.ndarray] | None = None   # (t_ns, wrench, allowed)
         self._demands = 0                        # commanded wrenches taken so far
         self._duty = np.zeros(n)
+        self._usable = np.ones(n, dtype=bool)
         self._alloc_key: tuple | None = None
         self._saturated = False
         self._limited: set[str] = set()
@@ -270,6 +271,7 @@ class ThrusterCompensator:
                 u0, _ = allocate(self.nominal, w, usable, s.eps)
                 self._duty[(self._duty < s.min_duty) & (u0 < s.min_duty)] = 0.0
             self._alloc_key = key
+        self._usable = usable
         on = self.mod.step(self._duty, usable)
         flags = [f"fault:thruster{j}" for j in sorted(self.faulty)]
         if self._saturated:
@@ -279,8 +281,23 @@ class ThrusterCompensator:
         else:
             flags.append(self.why_open if self.enabled else "disabled")
         self.last_cmd_ns = t
-        mask = int(np.dot(on.astype(np.int64), 1 << np.arange(self.n, dtype=np.int64)))
-        return ThrusterValves(t, mask, tuple(self._duty.tolist()), self.closed, tuple(sorted(flags)))
+        return ThrusterValves(t, self._mask(on), tuple(self._duty.tolist()), self.closed, tuple(sorted(flags)))
+
+    def schedule(self, t_ns: int, steps: int, step_ns: int) -> ThrusterValves:
+        """The valves of ``steps`` consecutive steps from sensor time ``t_ns``, ``step_ns`` apart,
+        at once (``bsc control`` sends those up to the next commanded wrench in one message):
+        the loop's state (closed, stale, the allocation) as of the first step, the valve timing
+        step by step (the first step's mask in ``valves``, the others in ``following``)."""
+        if steps < 1 or step_ns < 1:
+            raise ControlError("thruster loop: a schedule is at least one step of a positive length")
+        first = self.valves(t_ns)
+        following = tuple(self._mask(self.mod.step(self._duty, self._usable)) for _ in range(steps - 1))
+        self.last_cmd_ns = int(t_ns) + (steps - 1) * step_ns
+        return ThrusterValves(first.t_ns, first.valves, first.duty, first.closed, first.flags, following,
+                              int(step_ns) if following else 0)
+
+    def _mask(self, on: np.ndarray) -> int:
+        return int(np.dot(on.astype(np.int64), 1 << np.arange(self.n, dtype=np.int64)))
 
     def _open(self, t_ns: int, why: str) -> None:
         self.good_run = 0
