@@ -68,7 +68,7 @@ class ThrusterLoopSettings:
 
     max_deviation: float = 0.25     # |used - nominal| <= this of the valve's thrust (force), x lever arm (moment)
     max_rate_per_s: float = 1.0     # the used wrench moves at most this of that scale per second
-    learned_sigma: float = 0.03     # a valve's force uncertainty above this of its thrust: nominal wrench
+    learned_sigma: float = 0.10     # a valve's force uncertainty above this of its thrust: nominal wrench
     stale_s: float = 0.02           # no good estimate this recent behind a valve command: nominal allocation
     resume_good: int = 5            # good estimates in a row to close the loop again
     eps: float = 1e-3               # the allocation's regularisation (as the flight software's)

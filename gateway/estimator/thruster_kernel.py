@@ -19,11 +19,13 @@ The update, reformulated (exact in exact arithmetic, no approximation):
   (``B[i, r] B[j, r] == B[j, r] B[i, r]`` in IEEE arithmetic), so a bitwise-symmetric P stays
   bitwise symmetric: the symmetrisation pass of the numpy form is not needed (the prior is
   symmetrised once, at construction).
-- A valve that has never been open in any update ("inactive") has zero cross-covariance with
-  every other state: its rows of ``P H^T`` are sums of products with exact zeros, so its rows of
-  ``B`` are zero and the update leaves its rows of ``x`` and ``P`` as they are. The kernels skip
-  those rows (bit for bit the dense result, up to the sign of a zero). The random walk still adds
-  ``Q_per_s dt`` to the whole diagonal.
+- With a prior whose valve blocks are uncorrelated (``common_gain_sigma`` = 0: the shared gain
+  correlates them all, and then every valve is active from the start), a valve that has never
+  been open in any update ("inactive") has zero cross-covariance with every other state: its
+  rows of ``P H^T`` are sums of products with exact zeros, so its rows of ``B`` are zero and
+  the update leaves its rows of ``x`` and ``P`` as they are. The kernels skip those rows (bit
+  for bit the dense result, up to the sign of a zero). The random walk still adds ``Q_per_s dt``
+  to the whole diagonal.
 - ``P H^T`` is formed from rows of ``P`` (``P[c, :]`` for the columns ``c`` of ``H``): the same
   numbers as ``P[:, c]`` since P is bitwise symmetric, and contiguous.
 
@@ -545,7 +547,8 @@ class CompiledThrusterFilter:
 
     ``x`` and ``P`` are the live state arrays. Writing into them is allowed with two rules the
     update relies on: P stays bitwise symmetric, and a valve that has never been open in an
-    update keeps zero cross-covariance (its rows are skipped until it is)."""
+    update keeps zero cross-covariance (its rows are skipped until it is; with a shared gain in
+    the prior every valve is active from the start)."""
 
     def __init__(self, model: EstimatorModel, layout: ThrusterLayout, *, dt: float = 1e-3, imu_steps: int = 2,
                  settings: ThrusterFilterSettings | None = None):
@@ -576,7 +579,10 @@ class CompiledThrusterFilter:
         self._hist_mask = np.zeros(K, dtype=np.int64)
         self._ist = np.zeros(_RUNS + 2 * (self.n + 1), dtype=np.int64)
         self._fst = np.zeros(6)
-        _set_runs(self._ist, self.n, np.int64(0))
+        # a prior with a shared gain correlates every valve with every other: all active from the start
+        shared = bool(np.any(self._P[:6 * self.n, :6 * self.n][~np.kron(np.eye(self.n, dtype=bool),
+                                                                         np.ones((6, 6), dtype=bool))]))
+        _set_runs(self._ist, self.n, np.int64((1 << self.n) - 1) if shared else np.int64(0))
         self._state: State = (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm,
                               self._hist_mask, self._ist, self._fst)
 

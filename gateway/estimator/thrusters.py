@@ -12,10 +12,12 @@ temperature and tank pressure, or abruptly when it degrades). So::
 and the filter estimates the ``W_i`` (6 numbers per thruster) from every IMU sample, whose
 accelerometer and gyro see the same pulses averaged over their interval, after the arms'
 reaction (F/T sensors) is removed. The nominal layout (robot_description.thrusters) is the prior:
-thrust along the nominal direction with ``gain_sigma`` uncertainty, ``lateral_sigma`` across it
-(misalignment), moment = position x force. A 6-vector of constant "bias" states absorbs what the
-IMU and the F/T sensors see that no valve explains (sensor biases); it is reported, never added
-to the thrust.
+thrust along the nominal direction with ``gain_sigma`` uncertainty of its own plus
+``common_gain_sigma`` shared by every thruster (one propellant feed: the tank pressure moves every
+thrust together, so the thrusters that fire teach the gain of those that rarely do),
+``lateral_sigma`` across it (misalignment), moment = position x force. A 6-vector of constant
+"bias" states absorbs what the IMU and the F/T sensors see that no valve explains (sensor biases);
+it is reported, never added to the thrust.
 
 Measurement model, IMU sample k averaging the steps (epochs) of its interval I_k (n = steps per
 IMU sample, dt = step):
@@ -55,7 +57,8 @@ class ThrusterFilterSettings:
 
     accel_sigma: float = 3.1e-3        # m/s^2 per IMU sample (20 ug/sqrt(Hz) at 500 Hz, + wire quantization)
     gyro_sigma: float = 2.9e-5         # rad/s per IMU sample (ARW + 2^-14 rad/s wire quantization)
-    gain_sigma: float = 0.08           # prior: thrust along the nominal direction, fraction of max thrust
+    gain_sigma: float = 0.04           # prior: each thruster's own gain (thrust along its direction), fraction of max
+    common_gain_sigma: float = 0.08    # prior: the gain all thrusters share (one propellant feed), fraction of max
     lateral_sigma: float = 0.02        # prior: thrust across it (misalignment ~1.15 deg), fraction of max
     moment_sigma_nm: float = 2.0       # prior: moment not explained by position x force
     walk_force: float = 0.003          # random walk of each thruster's force, fraction of max per sqrt(s)
@@ -65,8 +68,11 @@ class ThrusterFilterSettings:
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise EstimatorSettingsError(f"{name} must be a number > 0, got {value!r}")
+            low = 0.0 if name == "common_gain_sigma" else None       # 0: every thruster's gain its own
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                               and (value >= 0 if low is not None else value > 0)):
+                raise EstimatorSettingsError(f"{name} must be a number {'>= 0' if low is not None else '> 0'}, "
+                                             f"got {value!r}")
 
 
 _Step = tuple[int, np.ndarray, np.ndarray]
@@ -101,6 +107,11 @@ class ThrusterFilter:
             P[6 * i:6 * i + 6, 6 * i:6 * i + 6] = G @ Sf @ G.T + np.diag([0, 0, 0] + [s.moment_sigma_nm ** 2] * 3)
             walk[6 * i:6 * i + 3] = (s.walk_force * fmax) ** 2
             walk[6 * i + 3:6 * i + 6] = s.walk_moment_nm ** 2
+        # the shared gain: every pair of thrusters correlated along their nominal wrenches
+        g = [np.vstack([np.eye(3), skew(layout.pos_m[i])]) @ (layout.dir[i] * layout.max_n[i]) for i in range(n)]
+        for i in range(n):
+            for j in range(n):
+                P[6 * i:6 * i + 6, 6 * j:6 * j + 6] += s.common_gain_sigma ** 2 * np.outer(g[i], g[j])
         P[6 * n:6 * n + 3, 6 * n:6 * n + 3] = np.eye(3) * s.bias_force_sigma_n ** 2
         P[6 * n + 3:, 6 * n + 3:] = np.eye(3) * s.bias_moment_sigma_nm ** 2
         self.x, self.P = x, P

@@ -145,7 +145,7 @@ def test_a_wrong_estimate_moves_the_wrenches_used_by_a_bounded_amount():
 
 def test_an_unlearned_valve_keeps_its_nominal_wrench():
     c = comp()
-    est = lambda k: ValveWrenches(k * MS, tuple(W_TRUE.ravel()), (0.5,) * (N - 1) + (8.0,), True)   # noqa: E731
+    est = lambda k: ValveWrenches(k * MS, tuple(W_TRUE.ravel()), (0.5,) * (N - 1) + (12.0,), True)   # noqa: E731
     run(c, 400, est)
     np.testing.assert_array_equal(c.used[-1], NOMINAL[-1])
     np.testing.assert_allclose(c.used[0], W_TRUE[0], atol=1e-9)

@@ -10,7 +10,7 @@ import pytest
 import robot_description as rd
 from gateway.estimator import EstimatorModel
 from gateway.estimator.thruster_kernel import IMU, STEP, WRENCH_ONLY, CompiledThrusterFilter
-from gateway.estimator.thrusters import ThrusterFilter
+from gateway.estimator.thrusters import ThrusterFilter, ThrusterFilterSettings
 from robot_description.thrusters import ThrusterLayout
 
 REL = 1e-9            # agreement with the numpy form
@@ -22,16 +22,17 @@ def paper():
 
 
 def _stream(model: EstimatorModel, layout: ThrusterLayout, *, steps: int, imu_steps: int, seed: int,
-            dt: float = 1e-3, never: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
+            dt: float = 1e-3, never: tuple[int, ...] = (), common: float = 1.0) -> dict[str, np.ndarray]:
     """Events as the live estimator produces them: per 1 kHz step a STEP (a WRENCH_ONLY for ~1 %
     untrusted steps), and after every ``imu_steps``-th step an IMU sample (~2 % lost). Truth: each
     valve's wrench off nominal by a few %, valves pulsing (~1.7 open), arm reactions (sines +
     noise), Euler-integrated rigid-body rates; IMU = interval means + the settings' noise. Valves
-    in ``never`` never open."""
+    in ``never`` never open; ``common`` multiplies every thrust (a shared gain: the tank pressure)."""
     rng = np.random.default_rng(seed)
     n = layout.n
     Is, Is_inv, m, r, R = model.inertia_s, np.linalg.inv(model.inertia_s), model.mass_s, model.r_imu, model.R_imu
     f = layout.dir * (layout.max_n * (1 + 0.05 * rng.normal(size=n)))[:, None] + rng.normal(0, 1.0, (n, 3))
+    f = common * f
     W = np.hstack([f, np.cross(layout.pos_m, f) + rng.normal(0, 0.5, (n, 3))])
     amp, freq, phase = rng.uniform(10, 60, 6), rng.uniform(0.1, 0.5, 6), rng.uniform(0, 2 * np.pi, 6)
     w = np.array([0.01, -0.02, 0.015])
@@ -166,11 +167,13 @@ def test_one_batch_chunks_and_single_calls_give_the_same_bits(paper):
 
 
 def test_a_valve_that_never_fired_keeps_its_prior_and_zero_cross_covariance(paper):
+    """Without a shared gain in the prior, the kernels skip a valve that never fired."""
     model, layout = paper
+    own = ThrusterFilterSettings(common_gain_sigma=0.0)
     ev = _stream(model, layout, steps=1200, imu_steps=2, seed=4, never=(5, 11))
-    ref = ThrusterFilter(model, layout)
-    kf = CompiledThrusterFilter(model, layout)
-    prior = CompiledThrusterFilter(model, layout)
+    ref = ThrusterFilter(model, layout, settings=own)
+    kf = CompiledThrusterFilter(model, layout, settings=own)
+    prior = CompiledThrusterFilter(model, layout, settings=own)
     _reference(ref, ev)
     _run(kf, ev)
     _assert_agree(kf, ref)
@@ -182,6 +185,29 @@ def test_a_valve_that_never_fired_keeps_its_prior_and_zero_cross_covariance(pape
         assert np.array_equal(kf.x[b], prior.x[b])
         assert np.array_equal(kf.P[b, b], ref.P[b, b])          # the prior plus the same random walk
         assert np.all(np.diag(kf.P[b, b]) > np.diag(prior.P[b, b]))
+
+
+def test_the_shared_gain_teaches_the_valves_that_never_fired(paper):
+    """Every thrust 8 % low (the tank pressure), valves 5 and 11 never open: with the shared gain
+    in the prior (the default) the filter moves their thrust to about 0.92 of nominal from what the
+    others deliver; with each gain its own they stay at the prior's nominal thrust."""
+    model, layout = paper
+    ev = _stream(model, layout, steps=3000, imu_steps=2, seed=6, never=(5, 11), common=0.92)
+    shared = CompiledThrusterFilter(model, layout)
+    ref = ThrusterFilter(model, layout)
+    own = CompiledThrusterFilter(model, layout, settings=ThrusterFilterSettings(common_gain_sigma=0.0))
+    _run(shared, ev)
+    _reference(ref, ev)
+    _run(own, ev)
+    _assert_agree(shared, ref)
+    def along(kf: CompiledThrusterFilter, i: int) -> float:        # thrust along the nominal direction
+        return float(kf.W[i, :3] @ layout.dir[i]) / layout.max_n[i]
+
+    for i in (5, 11):
+        assert abs(along(shared, i) - 0.92) < 0.03, (i, along(shared, i))
+        assert along(own, i) == 1.0
+    fired = [i for i in range(layout.n) if i not in (5, 11)]
+    assert np.mean([along(shared, i) for i in fired]) < 0.95
 
 
 def test_wrench_is_the_sum_of_the_open_valves_in_ascending_order(paper):
