@@ -79,7 +79,7 @@ class ValveWrenches:
     each valve exerts while open ``[force (N); moment about C (N m)]``, body frame;
     ``force_sigma_n`` (n,) each one's force uncertainty (1 sigma, N: the root of its force
     covariance's trace); ``good`` and ``flags`` those of the same epoch's :class:`ThrusterEffort`.
-    Published at most every 10 ms of sensor time (:mod:`gateway.pipeline`); what the thruster loop
+    Published at most every 5 ms of sensor time (:mod:`gateway.pipeline`); what the thruster loop
     of ``bsc control`` allocates with (:mod:`gateway.control.thrusters`)."""
 
     t_ns: int

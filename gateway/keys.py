@@ -15,7 +15,7 @@ Scheme (``<robot>`` = the robot description's name, e.g. ``paper_robot``)::
     bsc/<robot>/efforts/joints/<arm>              JointEfforts      estimated joint torques of an arm
     bsc/<robot>/efforts/thrusters                 ThrusterEffort    estimated thruster wrench
     bsc/<robot>/efforts/valves                    ValveWrenches     the thruster filter's learned per-valve
-                                                                    wrenches (at most every 10 ms)
+                                                                    wrenches (at most every 5 ms)
     bsc/<robot>/alerts                            Alert             monitor / analyze alerts
     bsc/<robot>/commands/drives/<arm>             DriveCommand      the compensator's drive command
                                                                     (bsc control; gateway/control/)

@@ -48,7 +48,7 @@ RowsOut = Callable[[np.ndarray, np.ndarray], None]      # (rows, log time of eac
 _KEY_ATTR = {WrenchSample: "device", JointSample: "device", TorqueCommand: "device", JointEfforts: "arm",
              ImuSample: None, ThrusterCommand: None, ValveCommand: None, ThrusterEffort: None,
              ValveWrenches: None}
-VALVE_WRENCH_PERIOD_NS = 10_000_000     # the learned per-valve wrenches: at most one record per 10 ms (100 Hz)
+VALVE_WRENCH_PERIOD_NS = 5_000_000      # the learned per-valve wrenches: at most one record per 5 ms (200 Hz)
 
 
 class PipelineError(GatewayError, ValueError):

@@ -10,8 +10,9 @@ desired torques becomes the drives' command for the following steps. The correct
 one step late, as it would be through the wire, and the run is deterministic. The thruster loop
 (:class:`gateway.control.ThrusterCompensator`) likewise: it sees the commanded wrench the spacecraft
 bus carried (``ThrusterCommand``), the thruster filter's learned per-valve wrenches with the
-quality of each epoch's thruster efforts, and the fault detector's alerts, and commands the valves
-of the next step.
+quality of the same epoch's thruster efforts, as the gateway publishes them
+(``bsc/<robot>/efforts/valves``, every 5 ms), and the fault detector's alerts, and commands the
+valves of the next step.
 
 :func:`closed_loop_study` runs the scenario three ways (no friction; friction, open loop; friction,
 compensated) and returns the figures of ``report.json``'s ``closed_loop`` block.
@@ -21,20 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.samples import ThrusterCommand, TorqueCommand
-from gateway.control import (JointCompensator, JointLoopSettings, ThrusterCompensator, ThrusterLoopSettings,
-                             ValveWrenches)
-from gateway.efforts import Alert, JointEfforts, ThrusterEffort
-
-
-def valve_wrenches(core, effort: ThrusterEffort) -> ValveWrenches:
-    """The thruster filter's learned per-valve wrenches (``core``: the session's
-    :class:`gateway.estimator.core.EstimatorCore`) as of the thruster effort ``effort``, with its
-    time and quality. In process: the gateway does not publish them yet (docs/control.md)."""
-    kf = core.kf
-    n = kf.n
-    var = np.diag(kf.P)[:6 * n].reshape(n, 6)[:, :3].sum(axis=1)
-    return ValveWrenches(effort.t_ns, tuple(kf.W.ravel().tolist()), tuple(np.sqrt(var).tolist()), effort.good,
-                         effort.flags)
+from gateway.control import JointCompensator, JointLoopSettings, ThrusterCompensator, ThrusterLoopSettings
+from gateway.efforts import Alert, JointEfforts, ValveWrenches
 
 
 def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enabled: bool = True,
@@ -85,8 +74,8 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
                     ready.append(arm)
             elif not thrusters:
                 return
-            elif isinstance(obj, ThrusterEffort):
-                thr.estimate(valve_wrenches(ses.pipeline.estimator, obj))
+            elif isinstance(obj, ValveWrenches):            # what the gateway publishes, 200 Hz
+                thr.estimate(obj)
             elif isinstance(obj, ThrusterCommand):
                 # the keep-out mask is the flight software's, not on the wire (docs/control.md)
                 thr.observe(obj, sim.allowed)

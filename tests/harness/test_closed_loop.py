@@ -58,11 +58,14 @@ def test_the_thruster_loop_cuts_the_wrench_error_through_the_gateway(study):
     # learned wrenches add); the loop closed at once and stayed closed, every step's valves external
     out, _ = study
     w, cut = out["thruster_wrench_rms_error"], out["thruster_wrench_error_cut"]
-    assert cut["force_n"] > 0.2 and cut["moment_nm"] > 0.2          # 2 s: 28 % and 37 % (2026-11-26)
+    # 2 s: 28 % and 37 % (2026-11-26, the learned wrenches in process every epoch); 38 % and 53 % on
+    # the ones the gateway publishes every 5 ms (15 % and 33 % every 10 ms)
+    assert cut["force_n"] > 0.2 and cut["moment_nm"] > 0.2
     for k in ("force_n", "moment_nm"):
         assert w["compensated"][k] < w["nominal_wrenches"][k]
     loop = out["thruster_loop"]
-    assert [t["state"] for t in loop["transitions"]] == ["closed"] and loop["transitions"][0]["t_s"] < 0.02
+    # closed after resume_good (5) published estimates, 5 ms apart
+    assert [t["state"] for t in loop["transitions"]] == ["closed"] and loop["transitions"][0]["t_s"] < 0.031
     assert loop["late"] == 0 and loop["steps_external"] == loop["commands"]["closed"] + loop["commands"]["open"]
 
 

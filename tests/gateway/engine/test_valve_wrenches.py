@@ -78,7 +78,7 @@ def test_one_record_per_window_with_the_filter_state_and_the_efforts_quality(run
     assert {k for k, o, _ in sink.got if isinstance(o, ValveWrenches)} == {keys.valve_wrenches(robot.name)}
     n = ses.pipeline.estimator.layout.n
     assert all(len(r.wrench) == 6 * n and len(r.force_sigma_n) == n for r in recs)
-    # at most one per 10 ms window, about one per window over the run, each a newer epoch
+    # at most one per window, about one per window over the run, each a newer epoch
     t = np.array([r.t_ns for r in recs])
     assert np.all(np.diff(t) > 0)
     windows = DURATION_S * 1e9 / VALVE_WRENCH_PERIOD_NS
@@ -100,7 +100,7 @@ def test_the_same_bytes_however_the_frames_are_split(run, split):
     robot, fl = run
     one, _, order = valve_records(robot, fl, 1)
     other, _, other_order = valve_records(robot, fl, split)
-    assert len(one) > 40
+    assert len(one) > 100
     assert [p for _, p, _ in other] == [p for _, p, _ in one]
     # and in the same place among the efforts
     assert other_order == order
