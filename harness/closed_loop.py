@@ -297,6 +297,15 @@ def format_table(study: dict, label: str) -> str:
                   f"p99 {delay.get('p99_us', float('nan')):.0f} us; arm-steps under a closed-loop command "
                   f"{steps.get('closed', 0)}, open-loop {steps.get('open', 0)}, flight software's (none or later than "
                   f"{d.get('max_age_us', float('nan')) / 1e3:g} ms) {steps.get('late_or_none', 0)}"]
+        wrt, cut_rt, v = rt.get("thruster_wrench_rms_error"), rt.get("thruster_wrench_error_cut"), rt.get("valves")
+        if wrt and cut_rt and v:
+            vd = v.get("first_step_to_arrival_us") or {}
+            lines += [f"  thruster wrench error: force {wrt['compensated']['force_n']:.2f} N (cut "
+                      f"{100 * cut_rt['force_n']:.1f} %), moment {wrt['compensated']['moment_nm']:.2f} N m (cut "
+                      f"{100 * cut_rt['moment_nm']:.1f} %); valve schedules' first step -> arrival p50 "
+                      f"{vd.get('p50_us', float('nan')):.0f} us, p99 {vd.get('p99_us', float('nan')):.0f} us; steps "
+                      f"on the loop's valves {v['steps_external']} of {v['steps']} (rows late {v['rows_late']}, "
+                      f"schedules too old {v['too_old']}), keep-out closed {v['keep_out_closed']} valve-steps"]
     return "\n".join(lines)
 
 
@@ -516,18 +525,111 @@ class DriveInbox:
                 "arm_steps_applied": dict(self.steps), "desired_frame_to_drive_command_us": delays}
 
 
+class ValveInbox:
+    """The simulated robot's valves on zenoh: the :class:`gateway.control.ThrusterValves` schedules of
+    ``bsc/<robot>/commands/thrusters`` (``bsc control``'s thruster loop), given to ``sim``
+    (``external_thrusters=True``) at each step (:meth:`apply`, from
+    :func:`simulator.firmware.run_on_buses`'s ``on_step``, on the simulation's thread).
+
+    Clocks: a schedule's times are those of the frames the gateway stamped (host time in a
+    real-time run); host time ``t`` is step ``round((t - t0) / 1 ms)``, ``t0`` the host time step 0
+    went out, estimated as the earliest ``now - step time`` seen after a step's frames were sent (a
+    step never goes out before it is due). A deadline, as for the drives: a schedule that arrives
+    more than ``max_age_s`` after its first step's time is not applied (those steps keep the flight
+    software's valves); rows for steps already run are not applied either (the simulation counts
+    them, ``valves_late``), nor are the steps no schedule covers. The flight software's keep-out
+    mask is not on the wire, so the controller may open a thruster the flight software has
+    excluded: the robot's valve driver closes it (an interlock), counted in ``keep_out_closed``
+    (valve-steps)."""
+
+    def __init__(self, session, sim, *, max_age_s: float = 0.005):
+        import threading
+
+        from gateway import keys
+
+        self.sim, self.max_age_ns = sim, int(max_age_s * 1e9)
+        self.n = sim.layout.n
+        self.bits = 1 << np.arange(self.n)
+        self.t0_ns: int | None = None
+        self.pending: list = []
+        self.delays_ns: list[int] = []
+        self.received = self.rejected = self.too_old = self.applied = self.keep_out_closed = 0
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(keys.thruster_valves(sim.robot.name), self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        import time
+
+        from gateway.control.messages import ControlError, decode_thruster_valves
+
+        now = time.time_ns()
+        try:
+            v = decode_thruster_valves(sample.payload.to_bytes())
+        except ControlError:
+            with self._lock:
+                self.rejected += 1
+            return
+        with self._lock:
+            self.received += 1
+            if v.valves >> self.n or any(m >> self.n for m in v.following) or len(v.duty) != self.n:
+                self.rejected += 1
+                return
+            self.delays_ns.append(now - v.t_ns)
+            if now - v.t_ns > self.max_age_ns:
+                self.too_old += 1
+                return
+            self.pending.append(v)
+
+    def apply(self, readings, now_ns: int | None = None) -> None:
+        """After step ``readings`` went out: the schedules that arrived since, to the simulation."""
+        import time
+
+        from simulator.engine import DT_NS
+
+        now = time.time_ns() if now_ns is None else now_ns
+        t0 = now - readings.t_ns
+        self.t0_ns = t0 if self.t0_ns is None else min(self.t0_ns, t0)
+        with self._lock:
+            todo, self.pending = self.pending, []
+        for v in todo:
+            k0 = round((v.t_ns - self.t0_ns) / DT_NS)
+            if k0 < 0:
+                continue
+            rows = (np.array(v.masks(), dtype=np.int64)[:, None] & self.bits) != 0
+            excluded = rows & ~self.sim.allowed
+            self.keep_out_closed += int(excluded.sum())
+            self.sim.command_valves(rows & self.sim.allowed, k0 * DT_NS)
+            self.applied += 1
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def summary(self) -> dict:
+        x = sorted(self.delays_ns)
+        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))] / 1e3, 1)     # noqa: E731
+        delays = None if not x else {"p50_us": pick(0.5), "p90_us": pick(0.9), "p99_us": pick(0.99),
+                                     "max_us": round(x[-1] / 1e3, 1), "n": len(x)}
+        sim = self.sim
+        return {"received": self.received, "rejected": self.rejected, "too_old": self.too_old,
+                "applied": self.applied, "max_age_us": self.max_age_ns / 1e3,
+                "steps_external": int(sim.valves_external.sum()), "steps": int(sim.k),
+                "rows_late": int(sim.valves_late), "keep_out_closed": self.keep_out_closed,
+                "first_step_to_arrival_us": delays}
+
+
 class RealtimeError(RuntimeError):
     """The real-time closed loop could not run (no network namespace, a process failed)."""
 
 
 def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None, command_limit: float = 1.0,
-                 rt_priority: int = 10, service_priority: int = 5, say=print):
+                 thrust_limit: float = 1.0, rt_priority: int = 10, service_priority: int = 5, say=print):
     """The closed loop in real time, across processes: ``bsc gateway`` (udp_multicast, the zenoh
-    router), ``bsc control`` and ``bsc sim --realtime --drives-from`` (the robot, its drives on
-    zenoh), each its own process, CAN over udp_multicast in a private network namespace (root and
-    iproute2, as the capacity benchmark); the robot at SCHED_FIFO ``rt_priority``, the gateway and
-    the compensator at ``service_priority`` (0: normal scheduling). Returns (the compensated
-    run's trace, the robot side's summary: frames, pacing, and the drive commands' delays).
+    router), ``bsc control`` (joints and thrusters) and ``bsc sim --realtime --drives-from
+    --valves-from`` (the robot, its drives and valves on zenoh), each its own process, CAN over
+    udp_multicast in a private network namespace (root and iproute2, as the capacity benchmark);
+    the robot at SCHED_FIFO ``rt_priority``, the gateway and the compensator at
+    ``service_priority`` (0: normal scheduling). Returns (the compensated run's trace, the robot
+    side's summary: frames, pacing, the drive commands' delays and the valve schedules').
     ``BSC_DEBUG_CLOSED_LOOP=1`` in the environment prints the services' last output."""
     import os
     import signal
@@ -582,14 +684,16 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
         try:
             start(["gateway", "-i", "udp_multicast", *channels, "--mode", "router", "--listen", ep, "--robot", sc.robot,
                    "--duration", run_for], "bsc gateway", "receive", "stdout")
-            start(["control", "--mode", "client", "--connect", ep, "--robot", sc.robot, "--duration", run_for],
+            start(["control", "--mode", "client", "--connect", ep, "--robot", sc.robot, "--duration", run_for,
+                   "--thruster-loop"],
                   "bsc control", "bsc control:", "stderr")
             say(f"closed loop in real time: {sc.name}, {sc.duration_s:g} s, gateway + control + robot processes")
             out = workdir / "sim"
             sim = subprocess.run(inside + ["sim", "--scenario", scenario_name, "--duration", f"{sc.duration_s:g}",
                                            "--interface", "udp_multicast", *channels, "--realtime",
                                            "--rt-priority", str(rt_priority), "--drives-from", ep,
-                                           "--command-limit", f"{command_limit:g}", "--no-plots", "--no-compare",
+                                           "--valves-from", ep, "--command-limit", f"{command_limit:g}",
+                                           "--thrust-limit", f"{thrust_limit:g}", "--no-plots", "--no-compare",
                                            "--quiet", "--out", str(out)],
                                  cwd=root, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
                                  timeout=3 * sc.duration_s + 300)
@@ -618,33 +722,26 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
 def realtime_study(scenario_arg: str, scenario, study: dict, traces: dict, workdir, *, command_limit: float = 1.0,
                    say=print) -> dict:
     """The real-time compensated run of ``scenario`` (``scenario_arg``: its name or file, as
-    ``bsc sim --scenario`` takes it) beside a lockstep study's no-friction and open-loop runs (the
-    same deterministic simulations): the same figures, the loop's delays and the pacing. Adds
-    the run's trace to ``traces`` as ``realtime``."""
+    ``bsc sim --scenario`` takes it), joints and thrusters, beside a lockstep study's no-friction
+    and open-loop runs (the same deterministic simulations, with the study's command and thrust
+    limits): the same figures, the loops' delays and the pacing. Adds the run's trace to
+    ``traces`` as ``realtime``."""
+    thrust_limit = study.get("thrust_limit_fraction", 1.0)
     trace, summary = run_realtime(scenario_arg, workdir, duration_s=scenario.duration_s,
-                                  command_limit=command_limit, say=say)
-    if study.get("thrust_limit_fraction", 1.0) != 1.0:
-        # the real-time robot allocates up to full thrust (its valves keep the flight software's):
-        # its baselines are the lockstep runs with full thrust, not the study's
-        from simulator.engine import Simulation
-
-        base = {"no_friction": Simulation(scenario, friction=False, command_limit=command_limit).run(),
-                "open_loop": Simulation(scenario, command_limit=command_limit).run()}
-        study = {"ee_rms_error_m": {k: ee_rms(tr) for k, tr in base.items()},
-                 "joint_torque_rms_error_nm": {"open_loop": torque_rms(base["open_loop"])},
-                 "thruster_wrench_rms_error": {"open_loop": wrench_rms(base["open_loop"])}}
+                                  command_limit=command_limit, thrust_limit=thrust_limit, say=say)
     ee = {"no_friction": study["ee_rms_error_m"]["no_friction"], "open_loop": study["ee_rms_error_m"]["open_loop"],
           "compensated": ee_rms(trace)}
     tq = {"open_loop": study["joint_torque_rms_error_nm"]["open_loop"], "compensated": torque_rms(trace)}
-    out = {"command_limit_fraction": command_limit, "thrust_limit_fraction": 1.0,
+    wr = {"open_loop": study["thruster_wrench_rms_error"]["open_loop"], "compensated": wrench_rms(trace)}
+    out = {"command_limit_fraction": command_limit, "thrust_limit_fraction": thrust_limit,
            "ee_rms_error_m": ee, "joint_torque_rms_error_nm": tq,
-           "thruster_wrench_rms_error": {"open_loop": study["thruster_wrench_rms_error"]["open_loop"],
-                                         "compensated": wrench_rms(trace),
-                                         "note": "thrusters not compensated: the joint loop only"},
+           "thruster_wrench_rms_error": {**wr, "band_hz": BAND_HZ},
+           "thruster_wrench_error_cut": {k: removed(wr["open_loop"][k], wr["compensated"][k])
+                                         for k in ("force_n", "moment_nm")},
            "ee_friction_error_removed": {k: removed(ee["open_loop"][k], ee["compensated"][k], ee["no_friction"][k])
                                          for k in ee["open_loop"]},
            "joint_torque_error_cut": {k: removed(tq["open_loop"][k], tq["compensated"][k]) for k in tq["open_loop"]},
-           "drives": summary.get("drives"), "pacing": summary.get("pacing"),
+           "drives": summary.get("drives"), "valves": summary.get("valves"), "pacing": summary.get("pacing"),
            "frames_sent": summary.get("frames_sent")}
     out["pass"] = all(out[k]["overall"] >= v for k, v in TARGETS.items())
     traces["realtime"] = trace

@@ -8,12 +8,15 @@ learns (docs/control.md).
 Subscribes to ``bsc/<robot>/efforts/joints/**`` and the desired torques the gateway observes on
 the arm buses (``bsc/<robot>/sensors/commands/torque/**``), and to the learned per-valve wrenches
 (``bsc/<robot>/efforts/valves``), the commanded wrench the gateway observes on the spacecraft bus
-(``bsc/<robot>/sensors/commands/thrusters``) and the gateway's alerts (its thruster faults);
+(``bsc/<robot>/sensors/commands/thrusters``) and the gateway's alerts (its thruster faults), with
+``--thruster-loop``;
 publishes each arm's corrected drive command on ``bsc/<robot>/commands/drives/<arm>``, the valves
 on ``bsc/<robot>/commands/thrusters`` and the loops' transitions on ``bsc/<robot>/commands/status``.
 In a deployment it runs as the ``controller`` role, the only one allowed to publish there.
-``--open-loop`` passes the desired torques through unchanged (the same path, no correction) and
-commands no valve; ``--joints-only`` leaves the valves to the flight software.
+The thruster loop runs with ``--thruster-loop`` only: the flight software's keep-out mask (which
+thrusters may fire without their plume reaching the target) is not on the wire, and without it the
+loop uses thrusters the flight software has excluded (docs/control.md). ``--open-loop`` passes the
+desired torques through unchanged (the same path, no correction) and commands no valve.
 """
 from __future__ import annotations
 
@@ -33,11 +36,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--open-loop", action="store_true",
                    help="publish the desired torques unchanged (no correction) and no valve command")
-    p.add_argument("--joints-only", action="store_true",
-                   help="no thruster loop: the robot's valves keep the flight software's commands")
-    p.add_argument("--thrusters", default=None, metavar="NAME|FILE",
+    g = p.add_argument_group("thruster loop (docs/control.md)")
+    g.add_argument("--thruster-loop", action="store_true",
+                   help="also command the valves (bsc/<robot>/commands/thrusters). Off by default: the flight "
+                        "software's keep-out mask is not on the wire, so the loop may fire a thruster whose "
+                        "plume the flight software keeps off the target")
+    g.add_argument("--thrusters", default=None, metavar="NAME|FILE",
                    help="the thruster layout, as bsc gateway takes it (default: the gateway's default layout)")
-    p.add_argument("--valve-min-on", type=float, default=0.004, metavar="S",
+    g.add_argument("--valve-min-on", type=float, default=0.004, metavar="S",
                    help="the valves' minimum on-time, their minimum impulse bit (default 0.004 s)")
     g = p.add_argument_group("joint loop (docs/control.md)")
     g.add_argument("--kp", type=float, default=d.kp, help=f"proportional gain on the torque error (default {d.kp:g})")
@@ -91,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     robot = robot_description.load(args.robot)
-    layout = None if args.joints_only else ThrusterLayout.load(args.thrusters)
+    layout = ThrusterLayout.load(args.thrusters) if args.thruster_loop else None
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     stop, restore = stop_on_sigterm()
     try:

@@ -18,7 +18,9 @@ observed them on the arm buses); with a thruster ``layout``, also ``bsc/<robot>/
 arm's :class:`DriveCommand` on ``commands/drives/<arm>`` every time the arm's desired torques are
 complete (the outer loop's rate); on each newer commanded wrench a :class:`ThrusterValves` on
 ``commands/thrusters``, the valves of the steps until the next one (``block_steps`` steps of
-``step_ns``, from one step after the commanded wrench's time); the loops' transitions (open/closed,
+``step_ns``, from one step after the commanded wrench's time) and, as a look-ahead the next
+schedule replaces, of as many steps again (so a schedule that arrives late leaves the valves no
+gap); the loops' transitions (open/closed,
 a thruster excluded) as :class:`gateway.efforts.Alert` records on ``commands/status``.
 
 Samples are handled on zenoh's callback thread under one lock, at once (the cores cost
@@ -158,7 +160,8 @@ class ControlService:
                     # may be used (docs/control.md)
                     self._demand_ns = obj.t_ns
                     thr.observe(obj)
-                    v = thr.schedule(obj.t_ns + self.step_ns, self.block_steps, self.step_ns)
+                    v = thr.schedule(obj.t_ns + self.step_ns, self.block_steps, self.step_ns,
+                                     lookahead=self.block_steps)
                     codec.put(self._pubs[THRUSTER_LOOP], encode_thruster_valves(v))
                     self.valves_published["closed" if v.closed else "open"] += 1
             elif isinstance(obj, Alert):

@@ -283,15 +283,23 @@ class ThrusterCompensator:
         self.last_cmd_ns = t
         return ThrusterValves(t, self._mask(on), tuple(self._duty.tolist()), self.closed, tuple(sorted(flags)))
 
-    def schedule(self, t_ns: int, steps: int, step_ns: int) -> ThrusterValves:
+    def schedule(self, t_ns: int, steps: int, step_ns: int, lookahead: int = 0) -> ThrusterValves:
         """The valves of ``steps`` consecutive steps from sensor time ``t_ns``, ``step_ns`` apart,
         at once (``bsc control`` sends those up to the next commanded wrench in one message):
         the loop's state (closed, stale, the allocation) as of the first step, the valve timing
-        step by step (the first step's mask in ``valves``, the others in ``following``)."""
-        if steps < 1 or step_ns < 1:
+        step by step (the first step's mask in ``valves``, the others in ``following``).
+        ``lookahead`` more steps follow them, timed on but not kept by the modulator: the next
+        schedule starts again from the state after ``steps`` and replaces them; until it arrives
+        they are what the valves do (a schedule that comes a few steps late leaves no gap)."""
+        if steps < 1 or step_ns < 1 or lookahead < 0:
             raise ControlError("thruster loop: a schedule is at least one step of a positive length")
         first = self.valves(t_ns)
         following = tuple(self._mask(self.mod.step(self._duty, self._usable)) for _ in range(steps - 1))
+        if lookahead:
+            mod = self.mod
+            kept = (mod.acc.copy(), mod.on.copy(), mod.on_steps.copy())
+            following += tuple(self._mask(mod.step(self._duty, self._usable)) for _ in range(lookahead))
+            mod.acc, mod.on, mod.on_steps = kept
         self.last_cmd_ns = int(t_ns) + (steps - 1) * step_ns
         return ThrusterValves(first.t_ns, first.valves, first.duty, first.closed, first.flags, following,
                               int(step_ns) if following else 0)

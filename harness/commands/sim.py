@@ -67,11 +67,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="with --drives-from: a drive command older than this (behind the desired torques it "
                            "corrects) is not applied; that arm's drives take the flight software's command "
                            "(default 0.005 s)")
+    cl_g.add_argument("--valves-from", metavar="ENDPOINT",
+                      help="with --realtime: the thrusters' valves follow the schedules of "
+                           "bsc/<robot>/commands/thrusters (bsc control's thruster loop) from the zenoh router at "
+                           "ENDPOINT instead of the flight software's; waits until bsc control is connected")
+    cl_g.add_argument("--valve-max-age", type=float, default=0.005, metavar="S",
+                      help="with --valves-from: a valve schedule that arrives more than this after its first "
+                           "step is not applied; those steps keep the flight software's valves (default 0.005 s)")
+    cl_g.add_argument("--thrust-limit", type=float, default=1.0, metavar="FRACTION",
+                      help="the flight software allocates at most this fraction of each thruster's thrust "
+                           "(default 1; less leaves the valves headroom for an inner loop)")
     cl_g.add_argument("--command-limit", type=float, default=1.0, metavar="FRACTION",
                       help="the flight software saturates its joint commands at this fraction of the torque "
                            "limits (default 1; less leaves the drives headroom for an inner loop)")
     cl_g.add_argument("--compute-lead", type=float, default=0.0003, metavar="S",
-                      help="with --drives-from: compute each step this long before it is due (default 0.0003 s), "
+                      help="with --drives-from or --valves-from: compute each step this long before it is due "
+                           "(default 0.0003 s), "
                            "so that a drive command arriving until then is in it")
     f_g = p.add_argument_group("fault injection (docs/firmware.md; rates are per sample, exclusive)")
     for name, what in (("drop", "a frame is not sent"), ("duplicate", "a frame is sent twice"),
@@ -147,8 +158,15 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--channel, --fd, --realtime, the bus options and the fault options need --interface")
     if args.rt_priority and not args.realtime:
         raise UserError("--rt-priority needs --realtime")
-    if args.drives_from and not args.realtime:
-        raise UserError("--drives-from needs --realtime (and --interface): the loop runs on the wall clock")
+    for flag, given in (("--drives-from", args.drives_from), ("--valves-from", args.valves_from)):
+        if given and not args.realtime:
+            raise UserError(f"{flag} needs --realtime (and --interface): the loop runs on the wall clock")
+    if args.drives_from and args.valves_from and args.drives_from != args.valves_from:
+        raise UserError("--drives-from and --valves-from must name the same endpoint (one zenoh session)")
+    if not 0.0 < args.thrust_limit <= 1.0:
+        raise UserError(f"--thrust-limit must be a fraction in (0, 1], got {args.thrust_limit:g}")
+    if not args.valve_max_age > 0:
+        raise UserError(f"--valve-max-age must be positive, got {args.valve_max_age:g}")
     if not 0.0 < args.command_limit <= 1.0:
         raise UserError(f"--command-limit must be a fraction in (0, 1], got {args.command_limit:g}")
     if not args.drive_max_age > 0:
@@ -162,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
-    sim = Simulation(sc, external_drives=bool(args.drives_from), command_limit=args.command_limit)
+    sim = Simulation(sc, external_drives=bool(args.drives_from), command_limit=args.command_limit,
+                     external_thrusters=bool(args.valves_from), thrust_limit=args.thrust_limit)
     can_summary = None
     if args.interface is None:
         trace = sim.run(progress=not args.quiet)
@@ -226,9 +245,9 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
         from gateway.commands import set_rt_priority
 
         set_rt_priority(args.rt_priority)
-        drives = None
-        if args.drives_from:
-            trace, drives = _run_closed_loop(args, sim, buses, fw)
+        inboxes: dict = {}
+        if args.drives_from or args.valves_from:
+            trace, inboxes = _run_closed_loop(args, sim, buses, fw)
         else:
             trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=args.realtime, progress=not args.quiet)
     totals = {k: sum(fw.counts[d][k] for d in fw.devices) for k in firmware.COUNT_KEYS if k != "samples"}
@@ -238,30 +257,45 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
                    "faults_per_device": {d: {k: v for k, v in fw.counts[d].items() if v and k != "samples"}
                                          for d in fw.devices
                                          if any(v for k, v in fw.counts[d].items() if k != "samples")},
-                   **({"drives": drives} if drives is not None else {})}
+                   **inboxes}
 
 
 def _run_closed_loop(args: argparse.Namespace, sim, buses, fw):
-    """Real time with the drives on zenoh (harness.closed_loop.DriveInbox): starts once bsc control
-    subscribes to the efforts, computes each step just before it is due."""
+    """Real time with the drives and/or the valves on zenoh (harness.closed_loop.DriveInbox,
+    ValveInbox): starts once bsc control subscribes to the efforts, computes each step just before
+    it is due. Returns (trace, {"drives": ..., "valves": ...} summaries)."""
     import zenoh
 
     from gateway import codec, keys
     from gateway.zenoh_config import make_config
-    from harness.closed_loop import DriveInbox
+    from harness.closed_loop import DriveInbox, ValveInbox
     from simulator import firmware
 
-    with zenoh.open(make_config(mode="client", connect=[args.drives_from])) as session:
-        inbox = DriveInbox(session, sim, max_age_s=args.drive_max_age)
+    endpoint = args.drives_from or args.valves_from
+    with zenoh.open(make_config(mode="client", connect=[endpoint])) as session:
+        inboxes: dict = {}
         try:
-            first = keys.joint_efforts(sim.robot.name, sim.robot.arms[0].name)
-            if not codec.wait_for_subscriber(session, first, timeout_s=60.0):
-                raise UserError(f"no bsc control subscribed to {first} at {args.drives_from} within 60 s")
+            if args.drives_from:
+                inboxes["drives"] = DriveInbox(session, sim, max_age_s=args.drive_max_age)
+            if args.valves_from:
+                inboxes["valves"] = ValveInbox(session, sim, max_age_s=args.valve_max_age)
+            need = ([keys.joint_efforts(sim.robot.name, sim.robot.arms[0].name)] if args.drives_from else []) + \
+                ([keys.valve_wrenches(sim.robot.name)] if args.valves_from else [])
+            for key in need:
+                if not codec.wait_for_subscriber(session, key, timeout_s=60.0):
+                    raise UserError(f"no bsc control subscribed to {key} at {endpoint} within 60 s")
+            applies = [box.apply for box in inboxes.values()]
+
+            def on_step(r) -> None:
+                for apply in applies:
+                    apply(r)
+
             trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=True, progress=not args.quiet,
-                                          on_step=inbox.apply, lookahead_steps=1, compute_lead_s=args.compute_lead)
+                                          on_step=on_step, lookahead_steps=1, compute_lead_s=args.compute_lead)
         finally:
-            inbox.close()
-    return trace, inbox.summary()
+            for box in inboxes.values():
+                box.close()
+    return trace, {name: box.summary() for name, box in inboxes.items()}
 
 
 def _run_series(args: argparse.Namespace) -> int:

@@ -189,6 +189,71 @@ def test_the_robots_drives_apply_fresh_commands_from_zenoh_and_never_late_ones(c
             inbox.close()
 
 
+def test_the_robots_valves_follow_fresh_schedules_from_zenoh_within_its_keep_out(capture):
+    import time
+
+    import zenoh
+
+    from gateway import codec
+    from gateway.control.messages import ThrusterValves, encode_thruster_valves
+    from gateway.keys import thruster_valves
+    from gateway.zenoh_config import make_config
+    from support import free_port, subscribed, wait_until
+
+    sim = Simulation(capture.replace(duration_s=0.1), external_thrusters=True)
+    n = sim.layout.n
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    ms = 1_000_000
+    masks = (0b11, 0b110, 0, 0b1100, (1 << n) - 1, 0b1, 0b10, 0b100, 0b1000, 0b10000)
+    with zenoh.open(make_config(mode="router", listen=[ep])) as a, \
+            zenoh.open(make_config(mode="client", connect=[ep])) as b:
+        inbox = closed_loop.ValveInbox(b, sim, max_age_s=0.005)
+        pub = codec.declare_publisher(a, thruster_valves("paper_robot"))
+        try:
+            subscribed(a, thruster_valves("paper_robot"))
+            t0 = time.time_ns()                     # the host time step 0 went out
+
+            def step():
+                r = sim.step()
+                inbox.apply(r, now_ns=t0 + r.t_ns + 80_000)   # each step out 80 us after it was due
+                return r
+
+            for _ in range(3):
+                step()
+            assert abs(inbox.t0_ns - (t0 + 80_000)) == 0
+            # the valves of steps 4..13 (their first step's host time 4.03 ms after t0: rounded to step 4)
+            v = ThrusterValves(t0 + 4 * ms + 30_000, masks[0], (0.0,) * n, True, (), masks[1:], ms)
+            codec.put(pub, encode_thruster_valves(v))
+            wait_until(lambda: inbox.received == 1, "the valve schedule")
+            # the keep-out of this period excludes thruster 1: closed by the robot, counted
+            sim.allowed = np.ones(n, dtype=bool)
+            sim.allowed[1] = False
+            keep = sim.allowed.copy()
+            step()                                  # step 3 out: the schedule goes to the simulation
+            while sim.k < 16:
+                step()
+            got = sim.valves_applied[4:14]
+            want = (np.array(masks)[:, None] >> np.arange(n)) & 1 != 0
+            np.testing.assert_array_equal(got, want & keep)
+            assert sim.valves_external[4:14].all() and not sim.valves_external[:4].any()
+            assert not sim.valves_external[14:16].any()      # beyond the schedule: the flight software's
+            assert inbox.keep_out_closed == int((want & ~keep).sum()) == 4
+            # too old on arrival (10 ms after its first step), and a step already run: not applied
+            codec.put(pub, encode_thruster_valves(ThrusterValves(time.time_ns() - 10 * ms, 1, (0.0,) * n, True)))
+            wait_until(lambda: inbox.too_old == 1, "the old schedule")
+            inbox.max_age_ns = 10 ** 10                 # (this test's steps are not paced: only late rows)
+            codec.put(pub, encode_thruster_valves(ThrusterValves(t0 + 2 * ms, 1, (0.0,) * n, True, (), (1,), ms)))
+            codec.put(pub, b"{}")
+            wait_until(lambda: inbox.received + inbox.rejected == 4, "the late and the bad schedules")
+            step()
+            s = inbox.summary()
+            assert (s["applied"], s["too_old"], s["rejected"], s["rows_late"]) == (2, 1, 1, 2)
+            assert s["steps_external"] == 10 and s["first_step_to_arrival_us"]["n"] == 3
+        finally:
+            pub.undeclare()
+            inbox.close()
+
+
 def test_bsc_demo_closed_loop_writes_the_report_keys_and_figures(tmp_path, capsys):
     import json
 
@@ -218,6 +283,9 @@ def test_bsc_demo_closed_loop_writes_the_report_keys_and_figures(tmp_path, capsy
     (["--command-limit", "0"], "--command-limit must be a fraction in (0, 1]"),
     (["--command-limit", "1.5"], "--command-limit must be a fraction in (0, 1]"),
     (["--drive-max-age", "0"], "--drive-max-age must be positive"),
+    (["--valves-from", "tcp/127.0.0.1:9"], "--valves-from needs --realtime"),
+    (["--thrust-limit", "0"], "--thrust-limit must be a fraction in (0, 1]"),
+    (["--valve-max-age", "-1"], "--valve-max-age must be positive"),
 ])
 def test_bsc_sim_closed_loop_options_are_checked_in_one_line(args, says, tmp_path, capsys):
     from gateway.cli import main

@@ -238,3 +238,22 @@ def test_valves_the_nominal_allocation_leaves_idle_are_not_pulsed_for_small_corr
     assert out[-1].closed
     assert all(out[-1].duty[i] == 0.0 for i in np.flatnonzero(small))
     assert not any(bits(v)[small].any() for v in out[10:])
+
+
+def test_a_schedule_is_the_steps_valves_at_once_and_its_look_ahead_is_replaced():
+    # the same valves as step by step; the look-ahead is what the next schedule gives when nothing
+    # changed, and it leaves the modulator where the schedule's own steps left it
+    one, other = comp(), comp()
+    for c in (one, other):
+        c.demand(0, WRENCH)
+        c.estimate(learned(0))
+    steps = [one.valves(k * MS).valves for k in range(1, 31)]
+    a = other.schedule(MS, 10, MS, lookahead=10)
+    assert a.t_ns == MS and a.step_ns == MS and len(a.masks()) == 20
+    assert list(a.masks()[:10]) == steps[:10]
+    b = other.schedule(11 * MS, 10, MS, lookahead=10)
+    assert a.masks()[10:] == b.masks()[:10] and list(b.masks()[:10]) == steps[10:20]
+    assert list(other.schedule(21 * MS, 10, MS).masks()) == steps[20:30]
+    assert any(steps) and other.schedule(31 * MS, 1, MS).following == ()
+    with pytest.raises(ControlError):
+        other.schedule(41 * MS, 0, MS)

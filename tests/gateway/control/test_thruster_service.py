@@ -116,14 +116,14 @@ def test_valves_until_the_next_commanded_wrench_on_the_learned_wrenches(sessions
                         oracle.estimate(what) if isinstance(what, ValveWrenches) else oracle.alert(what)
                 put(keys.thruster_command(ROBOT), ThrusterCommand(t, k, WRENCH[:3], WRENCH[3:]))
                 oracle.demand(t, WRENCH)
-                want = oracle.schedule(t + MS, 10, MS)
+                want = oracle.schedule(t + MS, 10, MS, lookahead=10)
                 wait_until(lambda: len(got.valves) >= k + 1, f"valves of period {k}")
                 assert got.valves[k] == want
                 return got.valves[k]
 
             first = period(0)
             assert not first.closed and first.flags == ("no-estimate",)
-            assert first.t_ns == MS and len(first.masks()) == 10 and first.step_ns == MS
+            assert first.t_ns == MS and len(first.masks()) == 20 and first.step_ns == MS     # and a look-ahead
             for k in range(1, 4):
                 v = period(k, est=estimate(10 * k * MS - MS))
             assert v.closed and "no-estimate" not in v.flags           # the 3rd good estimate closed it
@@ -179,14 +179,16 @@ def test_valve_commands_are_decoded_strictly():
             decode_thruster_valves(bad)
 
 
-def test_bsc_control_cli_runs_the_thruster_loop_unless_told_not_to():
+def test_bsc_control_cli_runs_the_thruster_loop_when_asked():
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    for extra, says in (([], "publishing on bsc/paper_robot/commands/drives/**, bsc/paper_robot/commands/thrusters"),
-                        (["--joints-only"], "publishing on bsc/paper_robot/commands/drives/**\n")):
+    for extra, says in ((["--thruster-loop"],
+                         "publishing on bsc/paper_robot/commands/drives/**, bsc/paper_robot/commands/thrusters"),
+                        ([], "publishing on bsc/paper_robot/commands/drives/**\n")):
         ep = f"tcp/127.0.0.1:{free_port()}"
         out = subprocess.run([sys.executable, "-m", "gateway.cli", "control", "--listen", ep, "--duration", "0.3",
                               *extra], capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
         assert out.returncode == 0 and says in out.stderr, out.stderr
-    out = subprocess.run([sys.executable, "-m", "gateway.cli", "control", "--valve-min-on", "0", "--duration", "1"],
+    out = subprocess.run([sys.executable, "-m", "gateway.cli", "control", "--thruster-loop", "--valve-min-on", "0",
+                          "--duration", "1"],
                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
     assert out.returncode == 2 and "--valve-min-on" in out.stderr and out.stderr.count("\n") == 1
