@@ -442,7 +442,54 @@ def plot_thruster_wrench(traces: dict, study: dict, path, title: str):
 
 # --- real time, across processes -------------------------------------------------------------
 
-class DriveInbox:
+class _Inbox:
+    """What the robot's drive and valve inboxes share: a subscription on ``key`` whose payloads are
+    decoded by ``decode`` (a payload that is no command is counted in ``rejected``) and handed with
+    their arrival time (host clock) to :meth:`_take`, under the lock, on zenoh's callback thread;
+    the delays recorded there (``delays_ns``) as percentiles. A subclass sets its own state first:
+    samples may arrive as soon as the subscription is declared."""
+
+    def __init__(self, session, key: str, decode):
+        import threading
+
+        self.received = self.rejected = 0
+        self.delays_ns: list[int] = []
+        self._decode = decode
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        import time
+
+        from gateway.control.messages import ControlError
+
+        now = time.time_ns()
+        try:
+            cmd = self._decode(sample.payload.to_bytes())
+        except ControlError:
+            with self._lock:
+                self.rejected += 1
+            return
+        with self._lock:
+            self.received += 1
+            self._take(cmd, now)
+
+    def _take(self, cmd, now_ns: int) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def _delays(self) -> dict | None:
+        x = sorted(self.delays_ns)
+        if not x:
+            return None
+        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))] / 1e3, 1)     # noqa: E731
+        return {"p50_us": pick(0.5), "p90_us": pick(0.9), "p99_us": pick(0.99), "max_us": round(x[-1] / 1e3, 1),
+                "n": len(x)}
+
+
+class DriveInbox(_Inbox):
     """The simulated robot's drives on zenoh: the latest :class:`DriveCommand` of each arm from
     ``bsc/<robot>/commands/drives/**``, applied to ``sim`` (``external_drives=True``) at each
     step (:meth:`apply`, from :func:`simulator.firmware.run_on_buses`'s ``on_step``).
@@ -456,43 +503,25 @@ class DriveInbox:
     closed-loop command, a fresh open-loop one, or the flight software's command was applied."""
 
     def __init__(self, session, sim, *, max_age_s: float = 0.005):
-        import threading
-
         from gateway import keys
+        from gateway.control.messages import decode_drive_command
 
         self.sim, self.max_age_ns = sim, int(max_age_s * 1e9)
         names = list(sim.robot.joint_names)
         self.cols = {a.name: [names.index(f"{a.name}/{j}") for j in a.joint_names] for a in sim.robot.arms}
         self.latest: dict[str, object] = {}
-        self.delays_ns: list[int] = []
         self.steps = {"closed": 0, "open": 0, "late_or_none": 0}       # arm-steps by what the drives applied
-        self.received = 0
-        self.rejected = 0
-        self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(keys.drive_commands(sim.robot.name), self._on_sample)
+        super().__init__(session, keys.drive_commands(sim.robot.name), decode_drive_command)
 
-    def _on_sample(self, sample) -> None:
-        import time
-
-        from gateway.control.messages import ControlError, decode_drive_command
-
-        now = time.time_ns()
-        try:
-            cmd = decode_drive_command(sample.payload.to_bytes())
-        except ControlError:
-            with self._lock:
-                self.rejected += 1
+    def _take(self, cmd, now_ns: int) -> None:
+        if cmd.arm not in self.cols or len(cmd.torque_nm) != len(self.cols[cmd.arm]):
+            self.rejected += 1
             return
-        with self._lock:
-            self.received += 1
-            if cmd.arm not in self.cols or len(cmd.torque_nm) != len(self.cols[cmd.arm]):
-                self.rejected += 1
-                return
-            old = self.latest.get(cmd.arm)
-            if old is not None and old.t_ns >= cmd.t_ns:
-                return
-            self.latest[cmd.arm] = cmd
-            self.delays_ns.append(now - cmd.t_ns)
+        old = self.latest.get(cmd.arm)
+        if old is not None and old.t_ns >= cmd.t_ns:
+            return
+        self.latest[cmd.arm] = cmd
+        self.delays_ns.append(now_ns - cmd.t_ns)
 
     def apply(self, readings=None, now_ns: int | None = None) -> None:
         """After a step went out: the drives' command for the next step (fresh commands from
@@ -513,19 +542,12 @@ class DriveInbox:
                 self.steps["closed" if cmd.closed else "open"] += 1
         self.sim.command_drives(drive, use)
 
-    def close(self) -> None:
-        self._sub.undeclare()
-
     def summary(self) -> dict:
-        x = sorted(self.delays_ns)
-        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))] / 1e3, 1)     # noqa: E731
-        delays = None if not x else {"p50_us": pick(0.5), "p90_us": pick(0.9), "p99_us": pick(0.99),
-                                     "max_us": round(x[-1] / 1e3, 1), "n": len(x)}
         return {"received": self.received, "rejected": self.rejected, "max_age_us": self.max_age_ns / 1e3,
-                "arm_steps_applied": dict(self.steps), "desired_frame_to_drive_command_us": delays}
+                "arm_steps_applied": dict(self.steps), "desired_frame_to_drive_command_us": self._delays()}
 
 
-class ValveInbox:
+class ValveInbox(_Inbox):
     """The simulated robot's valves on zenoh: the :class:`gateway.control.ThrusterValves` schedules of
     ``bsc/<robot>/commands/thrusters`` (``bsc control``'s thruster loop), given to ``sim``
     (``external_thrusters=True``) at each step (:meth:`apply`, from
@@ -543,42 +565,26 @@ class ValveInbox:
     (valve-steps)."""
 
     def __init__(self, session, sim, *, max_age_s: float = 0.005):
-        import threading
-
         from gateway import keys
+        from gateway.control.messages import decode_thruster_valves
 
         self.sim, self.max_age_ns = sim, int(max_age_s * 1e9)
         self.n = sim.layout.n
         self.bits = 1 << np.arange(self.n)
         self.t0_ns: int | None = None
         self.pending: list = []
-        self.delays_ns: list[int] = []
-        self.received = self.rejected = self.too_old = self.applied = self.keep_out_closed = 0
-        self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(keys.thruster_valves(sim.robot.name), self._on_sample)
+        self.too_old = self.applied = self.keep_out_closed = 0
+        super().__init__(session, keys.thruster_valves(sim.robot.name), decode_thruster_valves)
 
-    def _on_sample(self, sample) -> None:
-        import time
-
-        from gateway.control.messages import ControlError, decode_thruster_valves
-
-        now = time.time_ns()
-        try:
-            v = decode_thruster_valves(sample.payload.to_bytes())
-        except ControlError:
-            with self._lock:
-                self.rejected += 1
+    def _take(self, v, now_ns: int) -> None:
+        if v.valves >> self.n or any(m >> self.n for m in v.following) or len(v.duty) != self.n:
+            self.rejected += 1
             return
-        with self._lock:
-            self.received += 1
-            if v.valves >> self.n or any(m >> self.n for m in v.following) or len(v.duty) != self.n:
-                self.rejected += 1
-                return
-            self.delays_ns.append(now - v.t_ns)
-            if now - v.t_ns > self.max_age_ns:
-                self.too_old += 1
-                return
-            self.pending.append(v)
+        self.delays_ns.append(now_ns - v.t_ns)
+        if now_ns - v.t_ns > self.max_age_ns:
+            self.too_old += 1
+            return
+        self.pending.append(v)
 
     def apply(self, readings, now_ns: int | None = None) -> None:
         """After step ``readings`` went out: the schedules that arrived since, to the simulation."""
@@ -601,14 +607,8 @@ class ValveInbox:
             self.sim.command_valves(rows & self.sim.allowed, k0 * DT_NS)
             self.applied += 1
 
-    def close(self) -> None:
-        self._sub.undeclare()
-
     def summary(self) -> dict:
-        x = sorted(self.delays_ns)
-        pick = lambda q: round(x[min(len(x) - 1, int(q * len(x)))] / 1e3, 1)     # noqa: E731
-        delays = None if not x else {"p50_us": pick(0.5), "p90_us": pick(0.9), "p99_us": pick(0.99),
-                                     "max_us": round(x[-1] / 1e3, 1), "n": len(x)}
+        delays = self._delays()
         sim = self.sim
         return {"received": self.received, "rejected": self.rejected, "too_old": self.too_old,
                 "applied": self.applied, "max_age_us": self.max_age_ns / 1e3,

@@ -13,7 +13,6 @@ import threading
 from pathlib import Path
 
 import pytest
-import zenoh
 
 import robot_description
 from drivers.samples import TorqueCommand
@@ -23,7 +22,6 @@ from gateway.control.messages import decode_drive_command
 from gateway.keys import control_status, drive_commands
 from gateway.control.service import ControlService
 from gateway.efforts import JointEfforts
-from gateway.zenoh_config import make_config
 from support import free_port, subscribed, wait_until
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -31,13 +29,6 @@ ROBOT = "paper_robot"
 MS = 1_000_000
 DESIRED = (120.0, -40.0)
 ACTUAL = (70.0, -20.0)              # the joints deliver 50 and 20 N m less than desired (friction)
-
-
-@pytest.fixture
-def sessions():
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(make_config(listen=[ep])) as a, zenoh.open(make_config(connect=[ep])) as b:
-        yield a, b
 
 
 class Got:

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
 import robot_description
 from drivers.samples import ThrusterCommand
@@ -24,7 +23,6 @@ from gateway.control import ThrusterCompensator, ThrusterLoopSettings
 from gateway.control.messages import ControlError, ThrusterValves, decode_thruster_valves, encode_thruster_valves
 from gateway.control.service import ControlService, valve_timing
 from gateway.efforts import Alert, ValveWrenches
-from gateway.zenoh_config import make_config
 from robot_description.thrusters import ThrusterLayout
 from support import free_port, subscribed, wait_until
 
@@ -57,13 +55,6 @@ def estimate(t_ns, good=True, flags=()):
 def fault(t_ns, j, cleared=False):
     return Alert(ROBOT, "thruster", f"thruster{j}", "thruster-fault", "critical", "raised", t_ns, t_ns,
                  f"thruster {j}: stuck open", (("thruster", float(j)), ("type", 4.0 if cleared else 0.0)))
-
-
-@pytest.fixture
-def sessions():
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(make_config(listen=[ep])) as a, zenoh.open(make_config(connect=[ep])) as b:
-        yield a, b
 
 
 class Got:
