@@ -622,7 +622,8 @@ class RealtimeError(RuntimeError):
 
 
 def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None, command_limit: float = 1.0,
-                 thrust_limit: float = 1.0, rt_priority: int = 10, service_priority: int = 5, say=print):
+                 thrust_limit: float = 1.0, thrusters: bool = False, rt_priority: int = 10, service_priority: int = 5,
+                 say=print):
     """The closed loop in real time, across processes: ``bsc gateway`` (udp_multicast, the zenoh
     router), ``bsc control`` (joints and thrusters) and ``bsc sim --realtime --drives-from
     --valves-from`` (the robot, its drives and valves on zenoh), each its own process, CAN over
@@ -630,6 +631,8 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
     the robot at SCHED_FIFO ``rt_priority``, the gateway and the compensator at
     ``service_priority`` (0: normal scheduling). Returns (the compensated run's trace, the robot
     side's summary: frames, pacing, the drive commands' delays and the valve schedules').
+    The joints; ``thrusters``: the thruster loop too (else the robot's valves keep the flight
+    software's).
     ``BSC_DEBUG_CLOSED_LOOP=1`` in the environment prints the services' last output."""
     import os
     import signal
@@ -685,14 +688,15 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
             start(["gateway", "-i", "udp_multicast", *channels, "--mode", "router", "--listen", ep, "--robot", sc.robot,
                    "--duration", run_for], "bsc gateway", "receive", "stdout")
             start(["control", "--mode", "client", "--connect", ep, "--robot", sc.robot, "--duration", run_for,
-                   "--thruster-loop"],
+                   *(["--thruster-loop"] if thrusters else [])],
                   "bsc control", "bsc control:", "stderr")
             say(f"closed loop in real time: {sc.name}, {sc.duration_s:g} s, gateway + control + robot processes")
             out = workdir / "sim"
             sim = subprocess.run(inside + ["sim", "--scenario", scenario_name, "--duration", f"{sc.duration_s:g}",
                                            "--interface", "udp_multicast", *channels, "--realtime",
                                            "--rt-priority", str(rt_priority), "--drives-from", ep,
-                                           "--valves-from", ep, "--command-limit", f"{command_limit:g}",
+                                           *(["--valves-from", ep] if thrusters else []),
+                                           "--command-limit", f"{command_limit:g}",
                                            "--thrust-limit", f"{thrust_limit:g}", "--no-plots", "--no-compare",
                                            "--quiet", "--out", str(out)],
                                  cwd=root, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
@@ -720,22 +724,24 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
 
 
 def realtime_study(scenario_arg: str, scenario, study: dict, traces: dict, workdir, *, command_limit: float = 1.0,
-                   say=print) -> dict:
+                   thrusters: bool = False, say=print) -> dict:
     """The real-time compensated run of ``scenario`` (``scenario_arg``: its name or file, as
-    ``bsc sim --scenario`` takes it), joints and thrusters, beside a lockstep study's no-friction
-    and open-loop runs (the same deterministic simulations, with the study's command and thrust
-    limits): the same figures, the loops' delays and the pacing. Adds the run's trace to
-    ``traces`` as ``realtime``."""
+    ``bsc sim --scenario`` takes it) beside a lockstep study's no-friction and open-loop runs (the
+    same deterministic simulations, with the study's command and thrust limits): the same figures,
+    the loops' delays and the pacing. The joints; ``thrusters``: the thruster loop too. Adds the
+    run's trace to ``traces`` as ``realtime``."""
     thrust_limit = study.get("thrust_limit_fraction", 1.0)
     trace, summary = run_realtime(scenario_arg, workdir, duration_s=scenario.duration_s,
-                                  command_limit=command_limit, thrust_limit=thrust_limit, say=say)
+                                  command_limit=command_limit, thrust_limit=thrust_limit, thrusters=thrusters, say=say)
     ee = {"no_friction": study["ee_rms_error_m"]["no_friction"], "open_loop": study["ee_rms_error_m"]["open_loop"],
           "compensated": ee_rms(trace)}
     tq = {"open_loop": study["joint_torque_rms_error_nm"]["open_loop"], "compensated": torque_rms(trace)}
     wr = {"open_loop": study["thruster_wrench_rms_error"]["open_loop"], "compensated": wrench_rms(trace)}
-    out = {"command_limit_fraction": command_limit, "thrust_limit_fraction": thrust_limit,
+    out = {"command_limit_fraction": command_limit, "thrust_limit_fraction": thrust_limit, "thrusters": thrusters,
            "ee_rms_error_m": ee, "joint_torque_rms_error_nm": tq,
-           "thruster_wrench_rms_error": {**wr, "band_hz": BAND_HZ},
+           "thruster_wrench_rms_error": {**wr, "band_hz": BAND_HZ,
+                                         **({} if thrusters else {"note": "thrusters not compensated: the joint "
+                                                                          "loop only"})},
            "thruster_wrench_error_cut": {k: removed(wr["open_loop"][k], wr["compensated"][k])
                                          for k in ("force_n", "moment_nm")},
            "ee_friction_error_removed": {k: removed(ee["open_loop"][k], ee["compensated"][k], ee["no_friction"][k])

@@ -23,8 +23,9 @@ schedule replaces, of as many steps again (so a schedule that arrives late leave
 gap); the loops' transitions (open/closed,
 a thruster excluded) as :class:`gateway.efforts.Alert` records on ``commands/status``.
 
-Samples are handled on zenoh's callback thread under one lock, at once (the cores cost
-microseconds, an allocation a few hundred; a queue would only add delay): latest-wins by
+Samples are handled on zenoh's callback threads at once, each loop under its own lock (the joint
+core costs microseconds, a valve schedule 0.3-1 ms: it must not hold up a drive command; a queue
+would only add delay): latest-wins by
 construction, the cores keep only the newest estimates and commands. A bad payload is counted
 (``rejected``), never raised. Staleness is judged on the sensor clock the efforts and commands
 share: when the gateway stops, the next desired torques (commanded wrench) find no fresh estimate
@@ -76,12 +77,13 @@ class ControlService:
             min_on = max(1, round(valve_min_on_s * 1e9 / self.step_ns))
             self.thrusters = ThrusterCompensator.for_layout(layout, min_on=min_on, settings=thruster_settings)
         self._demand_ns: int | None = None          # the commanded wrench of the latest schedule
-        self.received = 0
+        self._received = {"joints": 0, "thrusters": 0}
         self.rejected = 0
         self.published = {"closed": 0, "open": 0}
         self.valves_published = {"closed": 0, "open": 0}
         self.alerts: list[Alert] = []
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()               # the joint loop's
+        self._thr_lock = threading.Lock()           # the thruster loop's: a schedule never holds up a drive command
         self._subs: list = []
         self._pubs: dict[str, object] = {}
         self._closed = False
@@ -107,7 +109,7 @@ class ControlService:
         if self._closed:
             return
         self._closed = True
-        with self._lock:
+        with self._lock, self._thr_lock:
             for s in self._subs + list(self._pubs.values()):
                 try:
                     s.undeclare()
@@ -133,26 +135,37 @@ class ControlService:
             return
         self.feed(obj)
 
+    @property
+    def received(self) -> int:
+        """Samples taken by the loops."""
+        return sum(self._received.values())
+
     def feed(self, obj) -> None:
         """One decoded sample (an estimate, an observed command or an alert) through the cores;
         publishes the arm's drive command when its desired torques are complete, the valves until
-        the next commanded wrench on each newer commanded wrench."""
-        with self._lock:
+        the next commanded wrench on each newer commanded wrench. The two loops have a lock each."""
+        if isinstance(obj, (JointEfforts, TorqueCommand)) or self.thrusters is None:
+            with self._lock:
+                if self._closed:
+                    return
+                self._received["joints"] += 1
+                if isinstance(obj, JointEfforts):
+                    self.core.estimate(obj)
+                elif isinstance(obj, TorqueCommand):
+                    arm = self.core.observe(obj)
+                    if arm is not None:
+                        cmd = self.core.command(arm)
+                        codec.put(self._pubs[arm], encode_drive_command(cmd))
+                        self.published["closed" if cmd.closed else "open"] += 1
+                for event in self.core.take_events():
+                    self._transition(event)
+            return
+        thr = self.thrusters
+        with self._thr_lock:
             if self._closed:
                 return
-            self.received += 1
-            thr = self.thrusters
-            if isinstance(obj, JointEfforts):
-                self.core.estimate(obj)
-            elif isinstance(obj, TorqueCommand):
-                arm = self.core.observe(obj)
-                if arm is not None:
-                    cmd = self.core.command(arm)
-                    codec.put(self._pubs[arm], encode_drive_command(cmd))
-                    self.published["closed" if cmd.closed else "open"] += 1
-            elif thr is None:
-                pass
-            elif isinstance(obj, ValveWrenches):
+            self._received["thrusters"] += 1
+            if isinstance(obj, ValveWrenches):
                 thr.estimate(obj)
             elif isinstance(obj, ThrusterCommand):
                 if self._demand_ns is None or obj.t_ns > self._demand_ns:
@@ -166,8 +179,7 @@ class ControlService:
                     self.valves_published["closed" if v.closed else "open"] += 1
             elif isinstance(obj, Alert):
                 thr.alert(obj)
-            events = self.core.take_events() + (thr.take_events() if thr is not None else [])
-            for event in events:
+            for event in thr.take_events():
                 self._transition(event)
 
     def _transition(self, e: LoopEvent) -> None:

@@ -160,6 +160,8 @@ class ThrusterCompensator:
         self._demands = 0                        # commanded wrenches taken so far
         self._duty = np.zeros(n)
         self._usable = np.ones(n, dtype=bool)
+        self._u0_key: tuple | None = None
+        self._u0 = np.zeros(n)
         self._alloc_key: tuple | None = None
         self._saturated = False
         self._limited: set[str] = set()
@@ -268,8 +270,11 @@ class ThrusterCompensator:
                 # a valve the nominal allocation would not fire either, at a duty so low that its
                 # pulses come slower than the band the spacecraft responds to, stays closed: its
                 # sparse pulses would add more error there than the small wrench they correct
-                u0, _ = allocate(self.nominal, w, usable, s.eps)
-                self._duty[(self._duty < s.min_duty) & (u0 < s.min_duty)] = 0.0
+                key0 = (self._demands, usable.tobytes())
+                if key0 != self._u0_key:            # the nominal allocation changes with the demand only
+                    self._u0, _ = allocate(self.nominal, w, usable, s.eps)
+                    self._u0_key = key0
+                self._duty[(self._duty < s.min_duty) & (self._u0 < s.min_duty)] = 0.0
             self._alloc_key = key
         self._usable = usable
         on = self.mod.step(self._duty, usable)

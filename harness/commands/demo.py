@@ -66,6 +66,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --closed-loop: also run the compensated case in real time across processes (bsc "
                         "gateway, bsc control and the robot over udp_multicast in a private network namespace: "
                         "root and iproute2), reporting the loop's delays (closed_loop.realtime)")
+    p.add_argument("--realtime-thrusters", action="store_true",
+                   help="with --realtime: the thruster loop too (bsc control --thruster-loop, the robot's valves "
+                        "from zenoh). Off by default: without the flight software's keep-out mask on the wire it "
+                        "is worse than open loop (docs/control.md)")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -218,10 +222,13 @@ def run(args: argparse.Namespace) -> int:
     closed_missed: list[str] = []
     if args.realtime and not args.closed_loop:
         raise UserError("--realtime runs the closed loop in real time: give --closed-loop too")
+    if args.realtime_thrusters and not args.realtime:
+        raise UserError("--realtime-thrusters adds the thrusters to the real-time loop: give --realtime too")
     if args.closed_loop:
         t = time.perf_counter()
         report["closed_loop"], closed_missed = _closed_loop(sc, args.out, progress=not args.quiet,
-                                                            realtime=args.scenario if args.realtime else None)
+                                                            realtime=args.scenario if args.realtime else None,
+                                                            thrusters=args.realtime_thrusters)
         timings["closed_loop_s"] = round(time.perf_counter() - t, 2)
     report["wall_s"] = round(time.perf_counter() - t0, 1)
     report["timings"] = timings
@@ -260,13 +267,14 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None) -> tuple[dict, list[str]]:
+def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None,
+                 thrusters: bool = False) -> tuple[dict, list[str]]:
     """The closed-loop study (harness.closed_loop) on the scenario as it is, then with the outer
     loop's commands limited to HEADROOM of the torque limits and THRUST_HEADROOM of the thrust
     (the drives keep room to cancel the friction, the valves to make up weak thrusters); figures
-    for both. ``realtime``: the scenario argument, to also run each
-    compensated case in real time across processes. Returns (report.json's closed_loop block,
-    targets missed by the first, lockstep)."""
+    for both. ``realtime``: the scenario argument, to also run each compensated case in real time
+    across processes (``thrusters``: the thruster loop too). Returns (report.json's closed_loop
+    block, targets missed by the first, lockstep)."""
     import tempfile
 
     from harness import closed_loop
@@ -280,7 +288,8 @@ def _closed_loop(sc, out: Path, progress: bool, realtime: str | None = None) -> 
         study, traces = closed_loop.closed_loop_study(sc, command_limit=limit, thrust_limit=thrust, progress=progress)
         if realtime is not None:
             with tempfile.TemporaryDirectory(prefix="bsc-closed-loop-") as tmp:
-                study["realtime"] = closed_loop.realtime_study(realtime, sc, study, traces, tmp, command_limit=limit)
+                study["realtime"] = closed_loop.realtime_study(realtime, sc, study, traces, tmp, command_limit=limit,
+                                                               thrusters=thrusters)
         closed_loop.plot_ee_error(traces, study, out / f"{name}_ee_error.png", f"{sc.name}, {what}")
         closed_loop.plot_joint_torques(traces, study, out / f"{name}_joint_torques.png", f"{sc.name}, {what}")
         closed_loop.plot_thruster_wrench(traces, study, out / f"{name}_thruster_wrench.png", f"{sc.name}, {what}")

@@ -276,6 +276,8 @@ def test_bsc_demo_closed_loop_writes_the_report_keys_and_figures(tmp_path, capsy
         assert (out / name).stat().st_size > 10_000, name
     assert main(run + ["--realtime"]) == 2
     assert "give --closed-loop too" in capsys.readouterr().err
+    assert main(run + ["--closed-loop", "--realtime-thrusters"]) == 2
+    assert "give --realtime too" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("args, says", [

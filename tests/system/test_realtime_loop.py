@@ -1,7 +1,7 @@
-"""The closed loop in real time across processes, as ``bsc demo --closed-loop --realtime`` runs it:
-``bsc gateway`` (udp_multicast in a private network namespace, the zenoh router), ``bsc control``
-(joints and thrusters) and ``bsc sim --realtime --drives-from --valves-from`` (the robot), each its
-own process. Root and iproute2 (skipped otherwise).
+"""The closed loop in real time across processes, as ``bsc demo --closed-loop --realtime
+--realtime-thrusters`` runs it: ``bsc gateway`` (udp_multicast in a private network namespace, the
+zenoh router), ``bsc control --thruster-loop`` and ``bsc sim --realtime --drives-from --valves-from``
+(the robot), each its own process. Root and iproute2 (skipped otherwise).
 
 What is checked does not depend on the host's load: every commanded wrench the gateway observed
 got a valve schedule back at the robot and every desired torque a drive command (applied or, late
@@ -25,7 +25,7 @@ def test_the_robots_drives_and_valves_take_bsc_controls_commands(tmp_path):
     duration_s = 1.0
     try:
         trace, summary = closed_loop.run_realtime("capture", tmp_path, duration_s=duration_s, command_limit=0.7,
-                                                  thrust_limit=0.9, say=lambda *_: None)
+                                                  thrust_limit=0.9, thrusters=True, say=lambda *_: None)
     except closed_loop.RealtimeError as exc:
         if "needs root" in str(exc):
             pytest.skip(str(exc))
