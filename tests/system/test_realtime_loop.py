@@ -21,11 +21,13 @@ pytestmark = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None,
                                 reason="needs root and iproute2 (a private network namespace)")
 
 
-def test_the_robots_drives_and_valves_take_bsc_controls_commands(tmp_path):
+def test_the_robots_drives_and_valves_take_bsc_controls_commands(tmp_path, monkeypatch):
     duration_s = 1.0
+    said: list[str] = []
+    monkeypatch.setenv("BSC_DEBUG_CLOSED_LOOP", "1")            # the services' last words, said on failure
     try:
         trace, summary = closed_loop.run_realtime("capture", tmp_path, duration_s=duration_s, command_limit=0.7,
-                                                  thrust_limit=0.9, thrusters=True, say=lambda *_: None)
+                                                  thrust_limit=0.9, thrusters=True, say=said.append)
     except closed_loop.RealtimeError as exc:
         if "needs root" in str(exc):
             pytest.skip(str(exc))
@@ -34,7 +36,7 @@ def test_the_robots_drives_and_valves_take_bsc_controls_commands(tmp_path):
     assert trace.n == steps
     v, d = summary["valves"], summary["drives"]
     # a schedule per commanded wrench (every 10 ms), each applied or too old; none refused
-    assert v["rejected"] == 0 and v["received"] >= 0.9 * steps / 10
+    assert v["rejected"] == 0 and v["received"] >= 0.9 * steps / 10, (v, d, "\n".join(said))
     assert v["applied"] + v["too_old"] == v["received"]
     assert v["steps"] == steps and 0 <= v["steps_external"] <= steps
     assert v["first_step_to_arrival_us"]["n"] == v["received"]
