@@ -58,7 +58,7 @@ def session(tmp_path_factory) -> Path:
 def test_a_recorded_session(session):
     report = check(session)
     for kind in ("bsc.CanFrame", "drivers.samples.WrenchSample", "drivers.samples.ImuSample",
-                 "gateway.efforts.JointEfforts", "gateway.efforts.ThrusterEffort",
+                 "gateway.efforts.JointEfforts", "gateway.efforts.ThrusterEffort", "gateway.efforts.ValveWrenches",
                  "drivers.samples.BusHealth", "drivers.samples.DeviceHealth"):
         assert report["schemas"][kind]["messages"] > 0, kind
     assert report["messages"] > 10_000 and report["invalid"] == 0
@@ -85,6 +85,7 @@ def test_a_replay_output(session, tmp_path):
     _bsc("replay", str(session), "--out", str(tmp_path / "replay"), "--samples", "--quiet")
     report = check(tmp_path / "replay" / "replay.mcap")
     assert report["schemas"]["gateway.efforts.ThrusterEffort"]["messages"] > 0
+    assert report["schemas"]["gateway.efforts.ValveWrenches"]["messages"] > 0
     assert report["schemas"]["drivers.samples.JointSample"]["messages"] > 0
     _check_robot_tree(report, "paper_robot", seconds=1.0)
 
