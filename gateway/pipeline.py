@@ -21,8 +21,9 @@ The thruster filter's learned per-valve wrenches (:class:`gateway.efforts.ValveW
 such window has been fed, the filter as of the latest epoch computed, with that epoch's time and
 thruster quality (none again before a newer epoch). The estimator is fed up to that sample, then
 on: where the record is taken depends only on the samples, never on how the frames were split
-into calls, so a replay reproduces it byte for byte, and in the same place among the efforts (after
-those of the epochs computed before it).
+into calls, so a replay reproduces it byte for byte. Within one call the records come before the
+efforts the call computed (as the samples do): their place among the efforts depends on the split,
+their bytes and their order on their key do not.
 """
 from __future__ import annotations
 
@@ -142,16 +143,28 @@ class Pipeline:
                     emit(self.key(obj), obj)
         est = self.estimator
         if est is not None:
-            lo = 0
-            for hi in self._valve_cuts(events):
-                if hi > lo:
-                    part = events[lo:hi]
-                    rows = est.feed(part)
-                    if len(rows):
-                        self._efforts(rows, t_frame[part["frame"][rows["cause"]]])
+            cuts = self._valve_cuts(events)
+            if len(cuts) == 1 and not self._cut_last:      # no valve wrenches to take here: one call
+                rows = est.feed(events)
+            else:
+                # fed up to each cut, the valve wrenches taken there; the efforts of every part go
+                # out together after them (one encoding of the batch: a part each costs a replay
+                # a third more time)
+                parts: list[np.ndarray] = []
+                lo = 0
+                for hi in cuts:
+                    part = est.feed(events[lo:hi])
+                    if len(part):
+                        part = part.copy()             # the estimator's buffer is the next call's
+                        part["cause"] += lo
+                        parts.append(part)
+                        self._last_epoch = (int(part["t_ns"][-1]), part["flags"][-1].copy())
+                    if hi < len(events) or self._cut_last:
+                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]))
                     lo = hi
-                if hi < len(events) or self._cut_last:
-                    self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]))
+                rows = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else parts
+            if len(rows):
+                self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
             alarms = est.thruster_alarms()
             if alarms:
                 self.log_ns = int(t_frame[-1])

@@ -54,7 +54,10 @@ def valve_records(robot, fl, split):
     ses.close()
     valves = [(k, codec.encode(o), t) for k, o, t in sink.got if isinstance(o, ValveWrenches)]
     efforts = {o.t_ns: o for _, o, _ in sink.got if isinstance(o, ThrusterEffort)}
-    order = [(k, o.t_ns) for k, o, _ in sink.got if "/efforts/" in k]
+    order = {}
+    for k, o, _ in sink.got:
+        if "/efforts/" in k:
+            order.setdefault(k, []).append(o.t_ns)
     return valves, efforts, order
 
 
@@ -102,7 +105,7 @@ def test_the_same_bytes_however_the_frames_are_split(run, split):
     other, _, other_order = valve_records(robot, fl, split)
     assert len(one) > 100
     assert [p for _, p, _ in other] == [p for _, p, _ in one]
-    # and in the same place among the efforts
+    # and every effort key the same sequence (within one call the records come before the efforts)
     assert other_order == order
 
 
