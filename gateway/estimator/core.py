@@ -363,10 +363,8 @@ def _apply_pending(si: I64, cfg: I64, lim: int, pend: np.ndarray, jcmd: F64, jcm
             v = s["values"]
             if cfg[13] != 0:                  # the fault detector: the update's innovation, then its verdict
                 dst, dcfg, wnom, ha, tap = scratch[3], scratch[4], scratch[5], scratch[6], scratch[7]
-                if tk.imu_tap(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10],
-                              v[4:7], tap, fd.learning(dst)):
-                    fd.observe(dst, dcfg, wnom, ha, tap, g)
-                    fd.accommodate(dst, dcfg, wnom, tf[0], tf[1])
+                fd.imu_update(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10],
+                              v[4:7], tap, dst, dcfg, wnom, ha)
             else:
                 tk.imu(tf[0], tf[1], tf[2], tf[3], tf[4], tf[5], tf[6], tf[7], tf[8], tf[9], g, v[7:10], v[4:7])
             si[_GYRO_T] = g

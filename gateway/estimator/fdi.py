@@ -100,9 +100,10 @@ scenarios' sensor classes end at 1.78-1.86 (seeds 500-502; the filter's noise fi
 alone, the F/T sensors' noise and the model's errors come on top); ``bsc demo``'s noise sweep: 0.58
 (x0.5), 6.5 (x2), 26 (x4). A noisier sensor raised every statistic and normalised innovation by as
 much: at x4 the gate held most healthy samples and the suspicion held the filter (the thruster
-force went from 3.58 to 7.36 % NRMSE). So the detectors' thresholds and the gate, set on those
-healthy sessions, hold at a level of :data:`NOISE_REF` and scale with it above
-(:func:`observe`)."""
+force went from 3.58 to 7.36 % NRMSE). So above a level of :data:`NOISE_REF` (where the
+detectors' thresholds and the gate were set, on those healthy sessions) the filter's IMU noise
+variances scale with it (:func:`r_scale`, :func:`imu_update`), and with them its innovation
+covariance and every statistic the detectors whiten by it."""
 NOISE_REF = 2.0                        # the noise level the thresholds and the gate were set at (healthy: 1.8)
 NOISE_CLIP = 4.0                       # an update adds at most this multiple of the current level
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
@@ -316,14 +317,10 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     L = np.zeros((6, 6))
     if not tk.cholesky(S, m, L):
         return float(st[_S_LEARN])
-    # the innovation's measured noise level, when above the thresholds' (NOISE_REF): every
-    # statistic whitened by k S, the gate k times wider
-    k_noise = st[_S_NOISE] / NOISE_REF if st[_S_NOISE] > NOISE_REF else 1.0
-    if k_noise != 1.0:
-        sk = math.sqrt(k_noise)
-        for r in range(m):
-            for q in range(r + 1):
-                L[r, q] *= sk
+    # the innovation's measured noise level, when above the thresholds' (NOISE_REF): the filter's
+    # IMU noise was k times its configured variance in this update (r_scale, set by imu_update),
+    # so S, every statistic whitened by it and the gate's normalised innovation already carry k
+    k_noise = r_scale(st)
     e = np.zeros(6)
     for r in range(m):
         e[r] = tap[tk.TAP_E + r]
@@ -533,7 +530,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[_S_NFAULTS] = nf
         confirming = True
         suspect = True
-    learn = 0.0 if suspect else cfg[_C_GATE] * k_noise
+    learn = 0.0 if suspect else cfg[_C_GATE]
     st[_S_LEARN] = learn
     return learn
 
@@ -606,6 +603,16 @@ def learning(st: F64) -> float:
 
 
 @_jit
+def r_scale(st: F64) -> float:
+    """What the thruster filter's IMU noise variances are multiplied by in the next update: the
+    innovation's measured noise level over :data:`NOISE_REF` when above it, else 1 (the sensors
+    as configured). A noisier IMU than configured (the noise sweep's x2, x4) would otherwise be
+    learnt from as if it were exact: the filter's wrenches chase its noise."""
+    lvl = st[_S_NOISE]
+    return float(lvl / NOISE_REF) if lvl > NOISE_REF else 1.0
+
+
+@_jit
 def noise_level(st: F64) -> float:
     """The innovation's measured noise level, the mean of ``e^T S^-1 e / m`` (:data:`NOISE_TAU_S`):
     1 when the innovation is as large as the filter predicts, 1.8 in healthy sessions of the
@@ -651,6 +658,23 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
     return out
 
 
+# -- one IMU sample through the filter and the detector (live: core.py; offline: run_events) --------------
+
+@_jit
+def imu_update(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
+               fst: F64, t_ns: int, accel: F64, rate: F64, tap: F64, st: F64, cfg: F64, Wnom: F64, Ha: F64) -> bool:
+    """The thruster filter's update of one IMU sample (:func:`.thruster_kernel.imu_tap`) with the
+    IMU's noise as measured (:func:`r_scale`) and what the detector let it learn (:func:`learning`),
+    then the detector's verdict (:func:`observe`) and the confirmed faults put into the filter
+    (:func:`accommodate`). True if the sample was applied."""
+    cst[tk._RSCALE] = r_scale(st)
+    if not tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel, rate, tap, st[_S_LEARN]):
+        return False
+    observe(st, cfg, Wnom, Ha, tap, t_ns)
+    accommodate(st, cfg, Wnom, x, P)
+    return True
+
+
 # -- offline: a recorded event stream through the filter and the detector --------------------------------
 
 @_jit
@@ -665,7 +689,6 @@ def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
     N m) with the faults found so far modelled; zero for IMU events."""
     n = Wnom.shape[0]
     h_all = 2 * n
-    learn = st[_S_LEARN]
     for k in range(kind.shape[0]):
         kd = kind[k]
         for q in range(4):
@@ -673,11 +696,8 @@ def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
         for q in range(6):
             out_wrench[k, q] = 0.0
         if kd == tk.IMU:
-            applied = tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns[k], accel[k], rate[k],
-                                 tap, learn)
-            if applied:
-                learn = observe(st, cfg, Wnom, Ha, tap, t_ns[k])
-                accommodate(st, cfg, Wnom, x, P)
+            if imu_update(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns[k], accel[k], rate[k],
+                          tap, st, cfg, Wnom, Ha):
                 for w in range(2):
                     best, bt = _best(st, h_all, w)
                     out_stat[k, 2 * w] = bt

@@ -82,8 +82,8 @@ IMU = 1                     # an IMU sample
 WRENCH_ONLY = 2             # a step the filter must not learn from: thruster wrench out only
 
 # cst (float64): constants
-_M, _DT, _STEP_NS, _R_ACC, _R_MOM, _I, _IINV, _RIMU, _RV, _HA, _T = 0, 1, 2, 3, 4, 7, 16, 25, 34, 37, 55
-_NCST = 56
+_M, _DT, _STEP_NS, _R_ACC, _R_MOM, _I, _IINV, _RIMU, _RV, _HA, _T, _RSCALE = 0, 1, 2, 3, 4, 7, 16, 25, 34, 37, 55, 56
+_NCST = 57
 # ist (int64): counters and small state
 _H_START, _H_COUNT, _HAVE_PREV, _PREV_NS, _HAVE_LAST, _LAST_NS, _UPDATES, _ACTIVE, _NRUNS, _RUNS = range(10)
 # fst (float64): previous gyro rate (body), latest gyro rate (body)
@@ -455,7 +455,7 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
                 hv[r, k] = Ha[6 * r + q]
                 k += 1
         hn[r] = k
-        R[r] = cst[_R_ACC]
+        R[r] = cst[_R_ACC] * cst[_RSCALE]
     m = 3
     vt = np.zeros(n)
     # gyro difference: I (w_k - w_{k-1}) / (n dt) - sum_u c_u (tau_arm(u) - w x I w)
@@ -492,7 +492,7 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
                 hc[3 + r, k] = 6 * n + 3 + r
                 hv[3 + r, k] = 1.0
                 hn[3 + r] = k + 1
-                R[3 + r] = cst[_R_MOM + r]
+                R[3 + r] = cst[_R_MOM + r] * cst[_RSCALE]
             m = 6
     # random walk since the last update (the whole diagonal)
     if ist[_HAVE_LAST] != 0:
@@ -571,6 +571,7 @@ class CompiledThrusterFilter:
         cst[_RV:_RV + 3] = ref.r
         cst[_HA:_HA + 18] = ref.Ha.reshape(18)
         cst[_T] = imu_steps * dt
+        cst[_RSCALE] = 1.0                 # the IMU noise as configured (set_noise_scale)
         self._cst = cst
         self._c = np.ascontiguousarray(ref.c, dtype=np.float64)
         K = 2 * imu_steps + 2

@@ -168,6 +168,26 @@ def test_a_noisier_imu_is_measured_and_neither_gated_nor_held(paper):
     assert kf.updates >= 0.9 * (ev["kind"] == tk.IMU).sum()
 
 
+def test_a_noisier_imu_is_weighed_as_measured(paper):
+    # the same x4 stream through the filter alone (the IMU's noise as configured) and through the
+    # filter with the detector (its variances times the measured level over NOISE_REF): weighed as
+    # it is, the noise moves the learnt valve wrenches less, and at x1 nothing changes (the level
+    # stays below NOISE_REF, the variances as configured)
+    model, layout = paper
+    for noise, better in ((4.0, True), (1.0, False)):
+        ev, W = stream(model, layout, steps=8000, seed=4, noise=noise)
+        _, _, kf, st = detect(model, layout, ev)
+        plain = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+        plain.run(ev["kind"], ev["t_ns"], ev["arm"], ev["masks"], ev["accel"], ev["rate"])
+        err = [float(np.sqrt(np.mean((f.W[:, :3] - W[:, :3]) ** 2))) for f in (kf, plain)]
+        if better:
+            assert fdi.r_scale(st) > 4.0 and kf.state[3][tk._RSCALE] > 4.0
+            assert err[0] < 0.85 * err[1], err
+        else:
+            assert fdi.r_scale(st) == 1.0 and kf.state[3][tk._RSCALE] == 1.0
+            assert np.array_equal(kf.x, plain.x)
+
+
 def test_a_stuck_valve_is_named_through_a_noisier_imu(paper):
     model, layout = paper
     onset = 4000
