@@ -228,8 +228,10 @@ def test_direct_mode_a_bus_gone_under_the_gateway_is_reopened(sessions, rig):  #
             rig.steps(20)
             wait_for(lambda: gw.stats["received"] == sum(rig.sent.values()), "before")
             rig.rx["arm0"].break_socket()             # the adapter went away
-            wait_for(lambda: "arm0" in spare and gw.buses["arm0"] is spare["arm0"][0], "no reopen")
             st = gw.bus_state["arm0"]
+            # the new bus is in place before its counters are (replace_bus): wait for both
+            wait_for(lambda: "arm0" in spare and gw.buses["arm0"] is spare["arm0"][0] and st.reopened == 1,
+                     "no reopen")
             assert st.outages == 1 and st.rx_errors >= 1 and st.reopened == 1
             got = st.received
             rig.tx.pop("arm0").shutdown()
