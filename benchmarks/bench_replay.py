@@ -116,10 +116,17 @@ def make_session(path: Path, seconds: float, pipeline_cls) -> tuple[int, float]:
     return n, time.perf_counter() - t0
 
 
-def _efforts(path: Path) -> list[tuple[str, bytes]]:
+def _efforts(path: Path) -> dict[str, list[bytes]]:
+    """Every effort's bytes, key by key in file order: the contract of replay (and of ``bsc replay
+    --check``) is the same bytes in the same order on every key; how keys interleave in the file
+    depends on how the frames were batched (gateway/pipeline.py: the learned valve wrenches of a
+    call come before the call's efforts)."""
     from gateway.log.reader import iter_file_order
 
-    return [(t, bytes(m.data)) for t, _, m in iter_file_order(path, lambda t, s: "/efforts/" in t)]
+    out: dict[str, list[bytes]] = {}
+    for t, _, m in iter_file_order(path, lambda t, s: "/efforts/" in t):
+        out.setdefault(t, []).append(bytes(m.data))
+    return out
 
 
 def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: int = 3) -> dict:
