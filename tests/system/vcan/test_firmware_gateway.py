@@ -157,7 +157,7 @@ def read_recording(path: Path) -> dict:
     and bus, the efforts."""
     from drivers.samples import BusHealth, DeviceHealth
     from gateway import codec
-    from gateway.efforts import JointEfforts, ThrusterEffort
+    from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
     from gateway.log.reader import iter_file_order
     from gateway.replay import sample_types
 
@@ -170,7 +170,7 @@ def read_recording(path: Path) -> dict:
             out["device_health"][obj.device] = obj
         elif isinstance(obj, BusHealth):
             out["bus_health"][obj.bus] = obj
-        elif isinstance(obj, (JointEfforts, ThrusterEffort)):
+        elif isinstance(obj, (JointEfforts, ThrusterEffort, ValveWrenches)):     # the learned valve wrenches too
             out["efforts"].append(obj)
         else:
             out["samples"].append(obj)
