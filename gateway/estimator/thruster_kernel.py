@@ -581,8 +581,7 @@ class CompiledThrusterFilter:
         self._ist = np.zeros(_RUNS + 2 * (self.n + 1), dtype=np.int64)
         self._fst = np.zeros(6)
         # a prior with a shared gain correlates every valve with every other: all active from the start
-        shared = bool(np.any(self._P[:6 * self.n, :6 * self.n][~np.kron(np.eye(self.n, dtype=bool),
-                                                                         np.ones((6, 6), dtype=bool))]))
+        shared = self.settings.common_gain_sigma > 0.0
         _set_runs(self._ist, self.n, np.int64((1 << self.n) - 1) if shared else np.int64(0))
         self._state: State = (self._x, self._P, self._Q, self._cst, self._c, self._hist_t, self._hist_arm,
                               self._hist_mask, self._ist, self._fst)

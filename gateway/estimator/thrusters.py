@@ -68,11 +68,10 @@ class ThrusterFilterSettings:
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
-            low = 0.0 if name == "common_gain_sigma" else None       # 0: every thruster's gain its own
+            zero_ok = name == "common_gain_sigma"                    # 0: every thruster's gain its own
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
-                                               and (value >= 0 if low is not None else value > 0)):
-                raise EstimatorSettingsError(f"{name} must be a number {'>= 0' if low is not None else '> 0'}, "
-                                             f"got {value!r}")
+                                               and (value >= 0 if zero_ok else value > 0)):
+                raise EstimatorSettingsError(f"{name} must be a number {'>= 0' if zero_ok else '> 0'}, got {value!r}")
 
 
 _Step = tuple[int, np.ndarray, np.ndarray]
@@ -107,11 +106,8 @@ class ThrusterFilter:
             P[6 * i:6 * i + 6, 6 * i:6 * i + 6] = G @ Sf @ G.T + np.diag([0, 0, 0] + [s.moment_sigma_nm ** 2] * 3)
             walk[6 * i:6 * i + 3] = (s.walk_force * fmax) ** 2
             walk[6 * i + 3:6 * i + 6] = s.walk_moment_nm ** 2
-        # the shared gain: every pair of thrusters correlated along their nominal wrenches
-        g = [np.vstack([np.eye(3), skew(layout.pos_m[i])]) @ (layout.dir[i] * layout.max_n[i]) for i in range(n)]
-        for i in range(n):
-            for j in range(n):
-                P[6 * i:6 * i + 6, 6 * j:6 * j + 6] += s.common_gain_sigma ** 2 * np.outer(g[i], g[j])
+        # the shared gain: every pair of thrusters correlated along their nominal wrenches (x's prior)
+        P[:6 * n, :6 * n] += s.common_gain_sigma ** 2 * np.outer(x[:6 * n], x[:6 * n])
         P[6 * n:6 * n + 3, 6 * n:6 * n + 3] = np.eye(3) * s.bias_force_sigma_n ** 2
         P[6 * n + 3:, 6 * n + 3:] = np.eye(3) * s.bias_moment_sigma_nm ** 2
         self.x, self.P = x, P
