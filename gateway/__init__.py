@@ -12,5 +12,8 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # (gateway/estimator/joint_filter.py): joint accelerations and each F/T sensor's bias from the
 # F/T sensor and the encoder rates; full torques the distal and sensor sides fused per joint;
 # JointEfforts.ft_bias; and the thruster filter's innovation gate and the clearing of a stuck
-# valve (gateway/estimator/fdi.py).
-KERNELS = "3"
+# valve (gateway/estimator/fdi.py). 4: contact detection (JointEfforts.contact); the sensor side
+# without the learnt F/T bias; the fault detector's 0.2 s warm-up and the clearing of a partial
+# loss; the thrusters' shared gain in the thruster filter's prior and the IMU weighed as measured
+# above the healthy noise level; the learned per-valve wrenches (efforts/valves).
+KERNELS = "4"
