@@ -41,19 +41,32 @@ class _Assembler:
     """Collects the parts of one multi-frame sample. Frame ids -> payloads, for one counter.
 
     ``first_ns``: the timestamp of the sample's first frame, which is its ``t_ns``: the closest
-    to when the device sampled (on a loaded bus the last frame can come most of a period later)."""
+    to when the device sampled (on a loaded bus the last frame can come most of a period later).
 
-    __slots__ = ("n", "counter", "parts", "first_ns")
+    ``optional``: the id of an optional part (the thruster command's keep-out mask). A stream that
+    has never carried it completes on the others; from its first one on, the part is required
+    (a frame of it lost makes the sample incomplete, as any part). If that first one arrives after
+    its sample completed without it, it is dropped, uncounted.
+    """
 
-    def __init__(self, n: int):
-        self.n = n
+    __slots__ = ("n", "counter", "parts", "first_ns", "optional", "done")
+
+    def __init__(self, n: int, optional: int | None = None):
+        self.n = n if optional is None else n - 1
+        self.optional = optional
         self.counter = -1
+        self.done = -1                  # the counter of the last completed sample
         self.parts: dict[int, bytes] = {}
         self.first_ns = 0
 
     def add(self, frame_id: int, counter: int, data: bytes, dev: DeviceCounters,
             t_ns: int) -> dict[int, bytes] | None:
         parts = self.parts
+        if frame_id == self.optional:
+            self.optional = None
+            self.n += 1
+            if not parts and counter == self.done:
+                return None
         if parts and counter != self.counter:
             dev.reject("incomplete")
             parts = self.parts = {}
@@ -66,6 +79,7 @@ class _Assembler:
         parts[frame_id] = data
         if len(parts) == self.n:
             self.parts = {}
+            self.done = counter
             return parts
         return None
 
@@ -200,13 +214,14 @@ class TorqueCommandDriver(Driver):
 
 class _MultiFrameDriver(Driver):
     _parts: tuple[int, ...] = ()
+    _optional: int | None = None
 
     def __init__(self, device: str, sink: Sink, fd: bool, timing: SourceTiming, fault_mask: int):
         super().__init__(wire.SPACECRAFT_BUS, sink, fd)
         self.device = device
         lays = wire.layouts("spacecraft")
         self.dev = DeviceCounters(device, self.bus, _period_ns("spacecraft", self._parts[0]), fault_mask, timing)
-        self._asm = _Assembler(len(self._parts))
+        self._asm = _Assembler(len(self._parts), self._optional)
         for i in self._parts:
             self._route[i] = (lays[i], self.dev, self._part)
 
@@ -243,9 +258,11 @@ class ImuDriver(_MultiFrameDriver):
 
 
 class ThrusterCommandDriver(_MultiFrameDriver):
-    """The thruster commands (three frames per control cycle) -> :class:`ThrusterCommand`."""
+    """The thruster commands (three frames per control cycle, four with the keep-out mask) ->
+    :class:`ThrusterCommand`."""
 
     _parts = frames.THRUSTER_PARTS
+    _optional = wire.THRUSTER_ALLOWED_ID
 
     def __init__(self, sink: Sink, fd: bool = False, timing: SourceTiming = DEFAULT_TIMING):
         super().__init__("thrusters", sink, fd, timing, 0)

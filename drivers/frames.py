@@ -23,6 +23,7 @@ Byte maps (``ctr`` = sample counter mod 256, identical in every frame of one sam
     0x181         THRUSTER_CMD_MOMENT  7    ctr   Mx      ..  My      ..  Mz  ..      0.05 N m
     0x182         THRUSTER_CMD_VALVES  5    ctr   valves u32
     0x183         THRUSTER_VALVE_CMD   5    ctr   valves u32                          1 kHz
+    0x184         THRUSTER_CMD_ALLOWED 5    ctr   allowed u32   (optional 4th THRUSTER_CMD frame)
     0x405         IMU_SAMPLE_TIME      5    ctr   time_us u32
     0x411         IMU_STATUS           5    ctr   status u32
     0x421         IMU_QUAT_WX          7    ctr   w i24           x i24               2^-22
@@ -61,12 +62,17 @@ TORQUE_CMD = _ARM[wire.TORQUE_CMD_BASE]
 HEARTBEAT = _ARM[wire.HEARTBEAT_BASE + 1]
 THR_F, THR_M, THR_V = _SC[wire.THRUSTER_FORCE_ID], _SC[wire.THRUSTER_MOMENT_ID], _SC[wire.THRUSTER_VALVES_ID]
 VALVE_CMD = _SC[wire.VALVE_CMD_ID]
+THR_A = _SC[wire.THRUSTER_ALLOWED_ID]
 IMU_T, IMU_S = _SC[wire.IMU_TIME_ID], _SC[wire.IMU_STATUS_ID]
 IMU_QA, IMU_QB, IMU_W, IMU_A = (_SC[wire.IMU_QUAT_WX_ID], _SC[wire.IMU_QUAT_YZ_ID], _SC[wire.IMU_RATE_ID],
                                 _SC[wire.IMU_ACCEL_ID])
 IMU_PARTS = (wire.IMU_TIME_ID, wire.IMU_STATUS_ID, wire.IMU_QUAT_WX_ID, wire.IMU_QUAT_YZ_ID, wire.IMU_RATE_ID,
              wire.IMU_ACCEL_ID)
-THRUSTER_PARTS = (wire.THRUSTER_FORCE_ID, wire.THRUSTER_MOMENT_ID, wire.THRUSTER_VALVES_ID)
+THRUSTER_PARTS = (wire.THRUSTER_FORCE_ID, wire.THRUSTER_MOMENT_ID, wire.THRUSTER_VALVES_ID,
+                  wire.THRUSTER_ALLOWED_ID)
+"""The thruster command's frames; the last (the keep-out mask) is optional: a stream that has
+never carried it completes on the first three (``THRUSTER_REQUIRED``), one that has, on all four."""
+THRUSTER_REQUIRED = 3
 FT_PARTS = (wire.FT_A_ID, wire.FT_B_ID)
 
 Values = tuple[Any, ...]
@@ -178,7 +184,7 @@ def _checked(lay: wire.Layout) -> FieldsFn:
 _F_FT_A, _F_FT_B, _F_JOINT = _checked(FT_A), _checked(FT_B), _checked(JOINT_STATE)
 _F_TORQUE, _F_VALVES = _checked(TORQUE_CMD), _checked(VALVE_CMD)
 _F_IMU = tuple(_checked(lay) for lay in (IMU_T, IMU_S, IMU_QA, IMU_QB, IMU_W, IMU_A))
-_F_THR = tuple(_checked(lay) for lay in (THR_F, THR_M, THR_V))
+_F_THR = tuple(_checked(lay) for lay in (THR_F, THR_M, THR_V, THR_A))
 _WRENCH, _JOINT, _IMU = builder(WrenchSample), builder(JointSample), builder(ImuSample)
 _TORQUE, _THRUSTER, _VALVE = builder(TorqueCommand), builder(ThrusterCommand), builder(ValveCommand)
 _FT_SAT, _DRIVE_SAT, _IMU_SAT = wire.FT_SAT, wire.DRIVE_SAT, wire.IMU_SAT
@@ -260,24 +266,28 @@ def decode_imu(parts: Mapping[int, bytes], t_ns: int) -> ImuSample:
 
 
 def decode_thruster(parts: Mapping[int, bytes], t_ns: int) -> ThrusterCommand:
-    """The three thruster command frames of one control cycle -> :class:`ThrusterCommand`.
+    """The thruster command frames of one control cycle -> :class:`ThrusterCommand`.
 
     ::
 
-        0x180 THRUSTER_CMD_FORCE  | ctr u8 | Fx i16 | Fy i16 | Fz i16 |   0.05 N, body frame
-        0x181 THRUSTER_CMD_MOMENT | ctr u8 | Mx i16 | My i16 | Mz i16 |   0.05 N m about C
-        0x182 THRUSTER_CMD_VALVES | ctr u8 | valves u32 |
+        0x180 THRUSTER_CMD_FORCE   | ctr u8 | Fx i16 | Fy i16 | Fz i16 |   0.05 N, body frame
+        0x181 THRUSTER_CMD_MOMENT  | ctr u8 | Mx i16 | My i16 | Mz i16 |   0.05 N m about C
+        0x182 THRUSTER_CMD_VALVES  | ctr u8 | valves u32 |
+        0x184 THRUSTER_CMD_ALLOWED | ctr u8 | allowed u32 |                 optional: allowed -1
     """
-    ff, fm, fv = _F_THR
+    ff, fm, fv, fa = _F_THR
     try:
         (c0, *f), s0 = ff(parts[wire.THRUSTER_FORCE_ID])
         (c1, *m), s1 = fm(parts[wire.THRUSTER_MOMENT_ID])
         (c2, valves), _ = fv(parts[wire.THRUSTER_VALVES_ID])
     except KeyError as exc:
         raise DecodeError(f"thruster command lacks frame 0x{exc.args[0]:03X}") from None
-    if not c0 == c1 == c2:
-        raise DecodeError(f"thruster frames disagree on the counter: {(c0, c1, c2)}")
-    return _THRUSTER(t_ns, c0, tuple(f), tuple(m), valves, s0 or s1)
+    c3, allowed = c2, -1
+    if wire.THRUSTER_ALLOWED_ID in parts:
+        (c3, allowed), _ = fa(parts[wire.THRUSTER_ALLOWED_ID])
+    if not c0 == c1 == c2 == c3:
+        raise DecodeError(f"thruster frames disagree on the counter: {(c0, c1, c2, c3)}")
+    return _THRUSTER(t_ns, c0, tuple(f), tuple(m), valves, s0 or s1, allowed)
 
 
 def decode_valves(data: bytes, t_ns: int) -> ValveCommand:
@@ -388,12 +398,16 @@ def imu_payloads(sample: ImuSample, time_us: int | None = None) -> list[tuple[in
 
 
 def thruster_payloads(sample: ThrusterCommand) -> list[tuple[int, bytes]]:
-    """The three thruster command frames of one control cycle."""
+    """The thruster command frames of one control cycle: the keep-out mask first when the sample
+    has one (so that a receiver's first sample carries it too), then force, moment, valves."""
     c = sample.counter & 0xFF
     f, _ = _pack_scaled(THR_F, (c,), sample.force_n)
     m, _ = _pack_scaled(THR_M, (c,), sample.moment_nm)
     v = THR_V.pack_raw((c, _u(sample.valves, 32, "valve mask")))
-    return [(wire.THRUSTER_FORCE_ID, f), (wire.THRUSTER_MOMENT_ID, m), (wire.THRUSTER_VALVES_ID, v)]
+    out = [(wire.THRUSTER_FORCE_ID, f), (wire.THRUSTER_MOMENT_ID, m), (wire.THRUSTER_VALVES_ID, v)]
+    if sample.allowed >= 0:
+        out.insert(0, (wire.THRUSTER_ALLOWED_ID, THR_A.pack_raw((c, _u(sample.allowed, 32, "keep-out mask")))))
+    return out
 
 
 def valves_payload(sample: ValveCommand) -> tuple[int, bytes]:

@@ -47,12 +47,13 @@ sink (a torque command frame gives one row per named joint slot, slot order)::
     1 JOINT    joint (joint_names)        angle_rad, rate_rad_s                        0       drive u8
     2 TORQUE   joint (joint_names)        torque_nm                                    0       0
     3 IMU      0                          quat_wxyz 4, rate_rad_s 3, accel_m_s2 3      0       IMU u32
-    4 THRUSTER 0                          force_n 3, moment_nm 3                       mask    0
+    4 THRUSTER 0                          force_n 3, moment_nm 3                       mask    allowed
     5 VALVE    0                          -                                            mask    0
 
 ``t_ns`` is the sample's (a multi-frame sample's first frame, as the drivers' ``first_ns``);
 ``frame`` is the index, in this call's batch, of the frame that completed the sample; unused
-values are 0.0. Every value is ``raw * scale`` in float64 with the DBC's per-signal scale, and
+values are 0.0. A thruster command's ``status`` is its keep-out mask (``THRUSTER_CMD_ALLOWED``),
+-1 when its stream does not carry one. Every value is ``raw * scale`` in float64 with the DBC's per-signal scale, and
 ``saturated`` follows drivers/frames.py (a scaled field at +-(2**(n-1) - 1), or the device's
 clipping bits).
 
@@ -132,9 +133,11 @@ DEV_DTYPE = np.dtype([("period_ns", "<i8"), ("samples", "<i8"), ("lost", "<i8"),
                       ("saturated", "<i8"), ("last_t_ns", "<i8"), ("last_counter", "<i8"),
                       ("last_device_ns", "<i8"), ("status", "<i8"), ("rejected", "<i8", (9,)),
                       ("asm_counter", "<i8"), ("asm_mask", "<i8"), ("asm_first_ns", "<i8"),
-                      ("parts", "<i8", (MAX_PARTS,))])
+                      ("parts", "<i8", (MAX_PARTS,)), ("asm_done", "<i8"), ("opt_seen", "<i8")])
 """Per :class:`~drivers.health.DeviceCounters`: its counters (``last_counter`` and
-``last_device_ns`` -1 for None; ``period_ns`` is configuration) and its assembler."""
+``last_device_ns`` -1 for None; ``period_ns`` is configuration) and its assembler (``asm_done``:
+the counter of its last completed sample, -1 none; ``opt_seen``: the stream has carried the
+sample's optional part, the thruster command's keep-out mask, so it completes only with it)."""
 
 # --- constants handed to the kernel -----------------------------------------------------------
 # ci (int64): header, per-value saturation limits, then the route codes of every bus (2048 ids each)
@@ -306,8 +309,16 @@ def _accept(ds: Record, t_ns: np.int64, saturated: Flag, status: np.int64 | int)
 
 
 @_jit
-def _assemble(ds: Record, part: int, n_parts: int, counter: np.int64, word: np.int64, t_ns: np.int64) -> bool:
-    """_Assembler.add: True when this part completes the sample (its parts are in ds.parts)."""
+def _assemble(ds: Record, part: int, n_parts: int, counter: np.int64, word: np.int64, t_ns: np.int64,
+              optional: int) -> bool:
+    """_Assembler.add: True when this part completes the sample (its parts are in ds.parts).
+    ``optional``: the index of an optional last part (-1 none); see drivers.devices._Assembler."""
+    if part == optional and ds.opt_seen == 0:
+        ds.opt_seen = 1
+        if ds.asm_mask == 0 and counter == ds.asm_done:
+            return False                # its sample completed without it; from now on it is required
+    if ds.opt_seen == 0 and optional >= 0:
+        n_parts = optional
     if ds.asm_mask != 0 and counter != ds.asm_counter:
         ds.rejected[_R_INCOMPLETE] += 1
         ds.asm_mask = 0
@@ -321,6 +332,7 @@ def _assemble(ds: Record, part: int, n_parts: int, counter: np.int64, word: np.i
     ds.asm_mask |= 1 << part
     if ds.asm_mask == (1 << n_parts) - 1:
         ds.asm_mask = 0
+        ds.asm_done = counter
         return True
     return False
 
@@ -438,8 +450,8 @@ def _feed(fr: np.ndarray, start: int, ci: Ints, cf: Floats, bus: np.ndarray, dev
                 k += 1
         else:                                   # a part of a multi-frame sample
             part = (code >> 4) & 0xF
-            n_parts = 2 if typ == _T_FT else (6 if typ == _T_IMU else 3)
-            if not _assemble(ds, part, n_parts, ctr, w, t):
+            n_parts = 2 if typ == _T_FT else (6 if typ == _T_IMU else 4)
+            if not _assemble(ds, part, n_parts, ctr, w, t, 3 if typ == _T_THR else -1):
                 continue
             p = ds.parts
             t0 = ds.asm_first_ns
@@ -480,7 +492,7 @@ def _feed(fr: np.ndarray, start: int, ci: Ints, cf: Floats, bus: np.ndarray, dev
                         ev.values[7 + j] = _s16(p[5], 1 + 2 * j) * cf[_CF_SCALE + _V_IMU + 7 + j]
                     k += 1
             else:
-                # parts in frames.THRUSTER_PARTS order: force, moment, valves
+                # parts in frames.THRUSTER_PARTS order: force, moment, valves, keep-out (optional)
                 sat = False
                 for j in range(3):
                     sat = sat or _at_limit(_s16(p[0], 1 + 2 * j), ci, _V_THR + j)
@@ -489,7 +501,7 @@ def _feed(fr: np.ndarray, start: int, ci: Ints, cf: Floats, bus: np.ndarray, dev
                 if _sequence(ds, ctr, t0, -1, ci, cf):
                     _accept(ds, t0, sat, 0)
                     ev = out[k]
-                    _event(ev, THRUSTER, 0, t0, ctr, sat, 0, _u32(p[2], 1), i)
+                    _event(ev, THRUSTER, 0, t0, ctr, sat, _u32(p[3], 1) if ds.opt_seen else -1, _u32(p[2], 1), i)
                     for j in range(3):
                         ev.values[j] = _s16(p[0], 1 + 2 * j) * cf[_CF_SCALE + _V_THR + j]
                         ev.values[3 + j] = _s16(p[1], 1 + 2 * j) * cf[_CF_SCALE + _V_THR + 3 + j]
@@ -651,6 +663,7 @@ class DriverCore:
         self._dev = np.zeros(len(devices), DEV_DTYPE)
         self._dev["period_ns"] = periods
         self._dev["last_counter"] = -1
+        self._dev["asm_done"] = -1
         self._dev["last_device_ns"] = -1
         self._out = np.zeros(256, EVENT_DTYPE)
         self._make: dict[int, Callable[..., Sample]] = {
@@ -794,7 +807,7 @@ class DriverCore:
                            map(tuple, v[:, 7:10].tolist()), e["saturated"].tolist(), e["status"].tolist())
             else:
                 objs = map(mk[THRUSTER], t, ctr, map(tuple, v[:, 0:3].tolist()), map(tuple, v[:, 3:6].tolist()),
-                           e["valves"].tolist(), e["saturated"].tolist())
+                           e["valves"].tolist(), e["saturated"].tolist(), e["status"].tolist())
             if where is None:
                 return list(objs)
             for i, o in zip(where, objs):

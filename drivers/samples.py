@@ -81,7 +81,10 @@ class ThrusterCommand:
     """The thruster wrench the controller commanded: body frame, force through and moment about C.
 
     ``valves`` is the bit mask of thruster valves open in the same control cycle (bit i =
-    thruster i of the configured layout).
+    thruster i of the configured layout). ``allowed``: the thrusters the controller may fire in
+    this cycle, its keep-out mask (``THRUSTER_CMD_ALLOWED``); -1 when the controller does not
+    send it (and in logs from before it existed): unknown, not "all". (Not None: Foxglove takes
+    one scalar type per field.)
     """
 
     t_ns: int
@@ -90,6 +93,7 @@ class ThrusterCommand:
     moment_nm: Vec3
     valves: int = 0
     saturated: bool = False
+    allowed: int = -1
 
 
 @dataclass(frozen=True, slots=True)

@@ -77,8 +77,7 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
             elif isinstance(obj, ValveWrenches):            # what the gateway publishes, 200 Hz
                 thr.estimate(obj)
             elif isinstance(obj, ThrusterCommand):
-                # the keep-out mask is the flight software's, not on the wire (docs/control.md)
-                thr.observe(obj, sim.allowed)
+                thr.observe(obj)                            # with the keep-out mask on the wire
                 have_demand = True
             elif isinstance(obj, Alert):
                 thr.alert(obj)

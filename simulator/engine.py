@@ -72,6 +72,7 @@ class Readings:
     imu: tuple | None = None               # (quat_wxyz, rate, accel, saturated) at the IMU rate
     torque_cmd: np.ndarray | None = None   # (n,) N m, at the controller rate
     thruster_cmd: np.ndarray | None = None  # (6,) body wrench about C, at the base rate
+    thruster_allowed: np.ndarray | None = None  # (n_thrusters,) bool, its keep-out mask, with it
     # commanded (the flight software's PWPFM, or the external command applied), not actual
     valves: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
@@ -479,6 +480,7 @@ class Simulation:
                         joint_angle=A["enc_angle"][k].copy(), joint_rate=A["enc_rate"][k].copy(), imu=imu,
                         torque_cmd=self.tau_cmd if k % self.ctrl_every == 0 else None,
                         thruster_cmd=self.wrench_cmd if k % self.base_every == 0 else None,
+                        thruster_allowed=self.allowed.copy() if k % self.base_every == 0 else None,
                         valves=(self._chunk_valves[k % self.base_every] if self.valves_applied is None
                                 else self.valves_applied[k]).copy())
 

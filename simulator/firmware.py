@@ -228,6 +228,7 @@ class Firmware:
                           for i, lay in wire.layouts(kind).items()}
         self._torque: object = None                  # the controller's latest outputs (held)
         self._thruster: object = None
+        self._allowed = -1                           # its keep-out mask (THRUSTER_CMD_ALLOWED; -1 none)
         lays = {**wire.layouts("arm"), **wire.layouts("spacecraft")}
         self._corruptible = {i: _measurement_bytes(lay) for i, lay in lays.items()}
         for arm in robot.arms:
@@ -265,6 +266,7 @@ class Firmware:
             self._torque = readings.torque_cmd
         if readings.thruster_cmd is not None:
             self._thruster = readings.thruster_cmd
+            self._allowed = -1 if readings.thruster_allowed is None else valve_mask(readings.thruster_allowed)
         for k, arm in enumerate(self.robot.arms):
             for j, joint in enumerate(arm.joint_names):
                 dev = f"{arm.name}/{joint}"
@@ -303,7 +305,7 @@ class Firmware:
             st = self._streams["thrusters"]
             self._emit(out, st, t, frames.encode_thruster(ThrusterCommand(
                 t, self._counter(st, t), tuple(map(float, w[:3])), tuple(map(float, w[3:])),
-                valves=valve_mask(readings.valves)), fd))
+                valves=valve_mask(readings.valves), allowed=self._allowed), fd))
         self._heartbeats(out, wire.SPACECRAFT_BUS, t)
         return out
 

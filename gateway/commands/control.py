@@ -13,9 +13,10 @@ the arm buses (``bsc/<robot>/sensors/commands/torque/**``), and to the learned p
 publishes each arm's corrected drive command on ``bsc/<robot>/commands/drives/<arm>``, the valves
 on ``bsc/<robot>/commands/thrusters`` and the loops' transitions on ``bsc/<robot>/commands/status``.
 In a deployment it runs as the ``controller`` role, the only one allowed to publish there.
-The thruster loop runs with ``--thruster-loop`` only: the flight software's keep-out mask (which
-thrusters may fire without their plume reaching the target) is not on the wire, and without it the
-loop uses thrusters the flight software has excluded (docs/control.md). ``--open-loop`` passes the
+The thruster loop runs with ``--thruster-loop`` only (docs/control.md), and commands valves only
+while the commanded wrench carries the flight software's keep-out mask (``THRUSTER_CMD_ALLOWED``:
+which thrusters may fire without their plume reaching the target); without it, none (the robot's
+valves keep the flight software's), raised as ``compensation-keepout-unknown``. ``--open-loop`` passes the
 desired torques through unchanged (the same path, no correction) and commands no valve.
 """
 from __future__ import annotations
@@ -38,9 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="publish the desired torques unchanged (no correction) and no valve command")
     g = p.add_argument_group("thruster loop (docs/control.md)")
     g.add_argument("--thruster-loop", action="store_true",
-                   help="also command the valves (bsc/<robot>/commands/thrusters). Off by default: the flight "
-                        "software's keep-out mask is not on the wire, so the loop may fire a thruster whose "
-                        "plume the flight software keeps off the target")
+                   help="also command the valves (bsc/<robot>/commands/thrusters), only while the commanded "
+                        "wrench carries the flight software's keep-out mask (THRUSTER_CMD_ALLOWED); off by "
+                        "default (docs/control.md)")
     g.add_argument("--thrusters", default=None, metavar="NAME|FILE",
                    help="the thruster layout, as bsc gateway takes it (default: the gateway's default layout)")
     g.add_argument("--valve-min-on", type=float, default=0.004, metavar="S",

@@ -23,6 +23,11 @@ schedule replaces, of as many steps again (so a schedule that arrives late leave
 gap); the loops' transitions (open/closed,
 a thruster excluded) as :class:`gateway.efforts.Alert` records on ``commands/status``.
 
+The valves are commanded only while the commanded wrench carries the flight software's keep-out
+mask (``THRUSTER_CMD_ALLOWED``, :attr:`ThrusterCommand.allowed`): a thruster it excludes is never
+fired. A commanded wrench without one gets no schedule (the robot's valves keep the flight
+software's), raised once as ``compensation-keepout-unknown`` and cleared when a mask comes back.
+
 Samples are handled on zenoh's callback threads at once, each loop under its own lock (the joint
 core costs microseconds, a valve schedule 0.3-1 ms: it must not hold up a drive command; a queue
 would only add delay): latest-wins by
@@ -43,6 +48,9 @@ from gateway.control.joints import JointCompensator, JointLoopSettings, LoopEven
 from gateway.control.messages import encode_drive_command, encode_thruster_valves
 from gateway.control.thrusters import LOOP as THRUSTER_LOOP, ThrusterCompensator, ThrusterLoopSettings
 from gateway.efforts import Alert, JointEfforts, ValveWrenches
+
+KEEPOUT_RULE = "compensation-keepout-unknown"
+"""The alert rule of commanded wrenches without the keep-out mask: no valve command meanwhile."""
 
 log = logging.getLogger("gateway.control")
 
@@ -77,6 +85,8 @@ class ControlService:
             min_on = max(1, round(valve_min_on_s * 1e9 / self.step_ns))
             self.thrusters = ThrusterCompensator.for_layout(layout, min_on=min_on, settings=thruster_settings)
         self._demand_ns: int | None = None          # the commanded wrench of the latest schedule
+        self._keepout_known: bool | None = None     # the latest commanded wrench carried a keep-out mask
+        self.valves_withheld = 0                    # commanded wrenches without one: no valve command
         self._received = {"joints": 0, "thrusters": 0}
         self.rejected = 0
         self.published = {"closed": 0, "open": 0}
@@ -169,9 +179,17 @@ class ControlService:
                 thr.estimate(obj)
             elif isinstance(obj, ThrusterCommand):
                 if self._demand_ns is None or obj.t_ns > self._demand_ns:
-                    # the keep-out mask of the flight software is not on the wire: every thruster
-                    # may be used (docs/control.md)
                     self._demand_ns = obj.t_ns
+                    if self._keepout_known is not (obj.allowed >= 0):
+                        self._keepout_known = obj.allowed >= 0
+                        self._transition(LoopEvent(THRUSTER_LOOP, obj.t_ns,
+                                                   "keep-out" if self._keepout_known else "no-keep-out", ""))
+                    if obj.allowed < 0:
+                        # without the flight software's keep-out mask the loop could fire a thruster
+                        # whose plume it keeps off the target: no valve command; the robot's valves
+                        # keep the flight software's (docs/control.md)
+                        self.valves_withheld += 1
+                        return
                     thr.observe(obj)
                     v = thr.schedule(obj.t_ns + self.step_ns, self.block_steps, self.step_ns,
                                      lookahead=self.block_steps)
@@ -184,7 +202,16 @@ class ControlService:
 
     def _transition(self, e: LoopEvent) -> None:
         thruster = e.arm == THRUSTER_LOOP
-        if e.state == "fault":                      # a thruster the fault detector named: never fired
+        if e.state in ("no-keep-out", "keep-out"):
+            if e.state == "keep-out" and self.valves_withheld == 0:
+                return                              # known from the start: nothing to say
+            raised = e.state == "no-keep-out"
+            alert = Alert(self.name, "thruster", e.arm, KEEPOUT_RULE, "warning" if raised else "info",
+                          "raised" if raised else "cleared", e.t_ns, e.t_ns,
+                          "thrusters: no valve commands, the commanded wrench carries no keep-out mask "
+                          "(THRUSTER_CMD_ALLOWED); the robot's flight software times its valves" if raised else
+                          "thrusters: the keep-out mask is on the wire again; valve commands resume")
+        elif e.state == "fault":                      # a thruster the fault detector named: never fired
             alert = Alert(self.name, "thruster", e.arm, "compensation-thruster-excluded", "warning", "raised",
                           e.t_ns, e.t_ns, f"thrusters: {e.reason}")
         else:

@@ -121,6 +121,13 @@ class SigmaDelta:
         return on.copy()
 
 
+def mask_bits(mask: int, n: int) -> np.ndarray | None:
+    """A bit mask (bit i = thruster i) -> (n,) bool; a negative one (none) -> None."""
+    if mask < 0:
+        return None
+    return ((int(mask) >> np.arange(n)) & 1).astype(bool)
+
+
 class ThrusterCompensator:
     """Allocation and valve timing on the gateway's learned per-valve wrenches (module docstring).
 
@@ -189,9 +196,12 @@ class ThrusterCompensator:
         self._demand = (int(t_ns), w, ok.copy())
         self._demands += 1
 
-    def observe(self, cmd: ThrusterCommand, allowed=None) -> None:
-        """The commanded wrench as the gateway observed it on the spacecraft bus."""
-        self.demand(cmd.t_ns, (*cmd.force_n, *cmd.moment_nm), allowed)
+    def observe(self, cmd: ThrusterCommand) -> None:
+        """The commanded wrench as the gateway observed it on the spacecraft bus, with the flight
+        software's keep-out mask it carries (``cmd.allowed``; -1, not on the wire: every
+        thruster, which is why :class:`~gateway.control.service.ControlService` then commands no
+        valve at all)."""
+        self.demand(cmd.t_ns, (*cmd.force_n, *cmd.moment_nm), mask_bits(cmd.allowed, self.n))
 
     def alert(self, a: Alert) -> None:
         """An alert of the gateway: a thruster fault (rule ``thruster-fault``) takes that thruster

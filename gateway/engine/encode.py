@@ -251,6 +251,8 @@ class SampleJson:
                     pr.field(n, INT, _I_COUNTER)
                 elif n == "status":
                     pr.field(n, INT, _I_STATUS)
+                elif n == "allowed":              # the thruster command's keep-out mask (-1: none)
+                    pr.field(n, INT, _I_STATUS)
                 elif n == "valves":
                     pr.field(n, INT, _I_VALVES)
                 elif n == "saturated":

@@ -48,7 +48,7 @@ def test_builder_builds_the_same_objects():
              (JointSample, ("arm0/j1", 1, 2, 0.25, -0.125, False, 0)),
              (ImuSample, (9, 1, (1.0, 0.0, 0.0, 0.0), (0.1, 0.2, 0.3), (1.0, 2.0, 3.0), False, 0x300)),
              (TorqueCommand, ("arm1/j2", 4, 3, -2.5, True)),
-             (ThrusterCommand, (6, 8, (1.0, 0.0, 0.0), (0.0, 0.0, 0.5), 0x3F, False)),
+             (ThrusterCommand, (6, 8, (1.0, 0.0, 0.0), (0.0, 0.0, 0.5), 0x3F, False, 0xFF0)),
              (ValveCommand, (7, 9, 0x20009)),
              (DeviceHealth, ("imu", "spacecraft", 1, 2, 3, 4, (("dlc", 1),), 5, True, 6, 7, True))]
     for cls, values in cases:
@@ -118,7 +118,7 @@ def _random_frames(spec: wire.BusSpec, n: int, seed: int):
     wire.BusSpec(name="arm2", kind="arm", arm="arm2", joints=tuple(f"j{i}" for i in range(5)), ids=wire.arm_ids(5)),
     wire.BusSpec(name="spacecraft", kind="spacecraft", ids=wire.SPACECRAFT_IDS)], ids=lambda s: getattr(s, "name", s))
 def test_dispatcher_equals_every_listener_seeing_every_frame(spec, fd):
-    msgs = _random_frames(spec, 6000, seed=len(spec.ids) * 2 + fd)
+    msgs = _random_frames(spec, 9000, seed=len(spec.ids) * 2 + fd)
     ref_out, fast_out = [], []
     ref_mon, ref_drv = devices.listeners_for(spec, ref_out.append, fd=fd)
     mon, drv = devices.listeners_for(spec, fast_out.append, fd=fd)

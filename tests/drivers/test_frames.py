@@ -79,6 +79,16 @@ def test_golden_thruster():
     assert s == ThrusterCommand(3, 9, (10.0, 0.0, -1.0), (0.0, 2.0, 0.0), valves=0b1011)
     assert dict(frames.thruster_payloads(s)) == THR
 
+
+def test_golden_thruster_with_the_keep_out_mask():
+    """0x184 THRUSTER_CMD_ALLOWED: thrusters 0-7 and 31 may fire = 0x800000FF; sent first."""
+    parts = {**THR, 0x184: H("09 800000FF")}
+    s = frames.decode_thruster(parts, 3)
+    assert s == ThrusterCommand(3, 9, (10.0, 0.0, -1.0), (0.0, 2.0, 0.0), valves=0b1011, allowed=0x800000FF)
+    assert frames.thruster_payloads(s) == [(0x184, parts[0x184])] + list(THR.items())
+    with pytest.raises(frames.DecodeError, match="disagree on the counter"):
+        frames.decode_thruster({**THR, 0x184: H("0A 800000FF")}, 3)
+
 # valve commands, counter 0x2A: thrusters 0, 3 and 17 open = bits 0b10_0000_0000_0000_1001 = 0x00020009
 VALVES = H("2A 00020009")
 

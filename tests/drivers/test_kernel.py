@@ -79,7 +79,7 @@ def check_frame_index(events, cols) -> None:
     """``frame`` is the frame that completed the sample: one of the device's ids, and for a
     one-frame sample its timestamp."""
     ids = {kernel.WRENCH: {wire.FT_A_ID, wire.FT_B_ID}, kernel.IMU: set(range(0x400, 0x440)),
-           kernel.THRUSTER: {0x180, 0x181, 0x182}, kernel.VALVE: {wire.VALVE_CMD_ID}}
+           kernel.THRUSTER: {0x180, 0x181, 0x182, 0x184}, kernel.VALVE: {wire.VALVE_CMD_ID}}
     for e in events:
         f = cols[e["frame"]]
         kind = int(e["kind"])
@@ -315,6 +315,39 @@ def test_resync_by_device_clock_and_staleness_knob():
         imu = core.health(t)[1][core.device_names.index("imu")]
         assert imu.lost == 1 + 127 + 128 + 255 + 256 + 257 + 1000 and not imu.lost_at_least
         assert dict(imu.rejected) == {"late": 1}
+
+
+def test_the_thruster_commands_optional_keep_out_frame():
+    """THRUSTER_CMD_ALLOWED (0x184) is optional: a stream without it completes on three frames
+    (allowed -1); its first 0x184 after its sample completed is dropped, uncounted; from then on
+    it is required (lost: the sample is incomplete). Kernel and Python drivers agree."""
+    from drivers import frames
+    from drivers.samples import ThrusterCommand
+
+    wm = fuzz_drivers.wire_map_for("paper_robot")
+    sc = list(wm.buses).index(wire.SPACECRAFT_BUS)
+    mask = 0x00000FF3
+    # (counter, allowed, where 0x184 goes: "first" / "last" / "lost")
+    plan = [(0, -1, None), (1, -1, None), (2, -1, None), (3, mask, "last"), (4, mask, "first"),
+            (5, mask, "last"), (6, mask, "lost"), (7, mask, "first"), (8, -1, None), (9, mask, "first")]
+    pairs = []
+    for c, allowed, where in plan:
+        msgs = frames.encode_thruster(ThrusterCommand(0, c, (10.0, 0.0, -1.0), (0.0, 2.0, 0.0), 0b101, False, allowed))
+        if where == "last":
+            msgs = msgs[1:] + msgs[:1]
+        elif where == "lost":
+            msgs = msgs[1:]
+        for m in msgs:
+            m.timestamp = (1 + c) * 10 * MS / 1e9
+        pairs += [(sc, m) for m in msgs]
+    core, _ = check_same(wm, pairs, pieces=5)
+    got = [s for s in core.to_samples(kernel.DriverCore(wm).feed(kernel.columns_from_messages(pairs)))
+           if isinstance(s, ThrusterCommand)]
+    # 3: completed before its 0x184; 6: its 0x184 lost; 8: no 0x184 once it is required
+    assert [(s.counter, s.allowed) for s in got] == [(0, -1), (1, -1), (2, -1), (3, -1), (4, mask),
+                                                      (5, mask), (7, mask), (9, mask)]
+    h = core.health(10**10)[1][core.device_names.index("thrusters")]
+    assert dict(h.rejected) == {"incomplete": 2} and h.lost == 2
 
 
 def test_resync_rounding_ties_and_a_repeated_counter():

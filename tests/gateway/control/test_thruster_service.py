@@ -21,7 +21,8 @@ from drivers.samples import ThrusterCommand
 from gateway import codec, keys
 from gateway.control import ThrusterCompensator, ThrusterLoopSettings
 from gateway.control.messages import ControlError, ThrusterValves, decode_thruster_valves, encode_thruster_valves
-from gateway.control.service import ControlService, valve_timing
+from gateway.control.service import KEEPOUT_RULE, ControlService, valve_timing
+from gateway.control.thrusters import mask_bits
 from gateway.efforts import Alert, ValveWrenches
 from robot_description.thrusters import ThrusterLayout
 from support import free_port, subscribed, wait_until
@@ -46,6 +47,21 @@ def learned():
 
 
 W_TRUE = learned()
+
+
+def keep_out() -> int:
+    """The flight software's keep-out mask of the test: every thruster but the two an unrestricted
+    allocation of WRENCH uses most (so that the mask changes the schedules)."""
+    free = ThrusterCompensator.for_layout(LAYOUT, min_on=4, settings=SETTINGS)
+    free.demand(0, WRENCH)
+    duty = free.schedule(MS, 10, MS).duty
+    out = [int(j) for j in np.argsort(duty)[-2:]]
+    assert min(duty[j] for j in out) > 0.0
+    return ((1 << N) - 1) & ~sum(1 << j for j in out)
+
+
+ALLOWED = keep_out()
+EXCLUDED = [j for j in range(N) if not (ALLOWED >> j) & 1]
 
 
 def estimate(t_ns, good=True, flags=()):
@@ -105,11 +121,13 @@ def test_valves_until_the_next_commanded_wrench_on_the_learned_wrenches(sessions
                         put(keys.valve_wrenches(ROBOT) if isinstance(what, ValveWrenches) else keys.alerts(ROBOT),
                             what)
                         oracle.estimate(what) if isinstance(what, ValveWrenches) else oracle.alert(what)
-                put(keys.thruster_command(ROBOT), ThrusterCommand(t, k, WRENCH[:3], WRENCH[3:]))
-                oracle.demand(t, WRENCH)
+                put(keys.thruster_command(ROBOT), ThrusterCommand(t, k, WRENCH[:3], WRENCH[3:], allowed=ALLOWED))
+                oracle.demand(t, WRENCH, mask_bits(ALLOWED, N))
                 want = oracle.schedule(t + MS, 10, MS, lookahead=10)
                 wait_until(lambda: len(got.valves) >= k + 1, f"valves of period {k}")
                 assert got.valves[k] == want
+                # the flight software's keep-out, on the wire: an excluded thruster never fires
+                assert not any((m >> j) & 1 for m in got.valves[k].masks() for j in EXCLUDED)
                 return got.valves[k]
 
             first = period(0)
@@ -120,7 +138,7 @@ def test_valves_until_the_next_commanded_wrench_on_the_learned_wrenches(sessions
             assert v.closed and "no-estimate" not in v.flags           # the 3rd good estimate closed it
             # an older commanded wrench arriving late is not answered
             n = len(got.valves)
-            put(keys.thruster_command(ROBOT), ThrusterCommand(5 * MS, 99, WRENCH[:3], WRENCH[3:]))
+            put(keys.thruster_command(ROBOT), ThrusterCommand(5 * MS, 99, WRENCH[:3], WRENCH[3:], allowed=ALLOWED))
             # a not-good estimate: the next valves on the nominal allocation, the transition published
             v = period(4, est=estimate(39 * MS, good=False, flags=("stale:imu",)))
             assert len(got.valves) == n + 1
@@ -146,6 +164,28 @@ def test_valves_until_the_next_commanded_wrench_on_the_learned_wrenches(sessions
     finally:
         for s in subs + list(pubs.values()):
             s.undeclare()
+
+
+def test_no_valve_command_without_the_keep_out_mask(sessions):
+    """A commanded wrench without THRUSTER_CMD_ALLOWED (a controller that does not send it, or a
+    log from before it existed): no valve command, raised once; the mask back: valves again."""
+    _, ctl_side = sessions
+    robot = robot_description.load(ROBOT)
+    with ControlService(ctl_side, robot, layout=LAYOUT, thruster_settings=SETTINGS) as ctl:
+        ctl.feed(ThrusterCommand(0, 0, WRENCH[:3], WRENCH[3:], allowed=ALLOWED))
+        assert ctl.valves_published == {"closed": 0, "open": 1} and not ctl.alerts   # known from the start
+        for k in (1, 2, 3):
+            ctl.feed(ThrusterCommand(10 * k * MS, k, WRENCH[:3], WRENCH[3:]))
+        assert ctl.valves_withheld == 3 and sum(ctl.valves_published.values()) == 1
+        (a,) = ctl.alerts
+        assert (a.rule, a.state, a.target, a.t_ns) == (KEEPOUT_RULE, "raised", "thrusters", 10 * MS)
+        assert "THRUSTER_CMD_ALLOWED" in a.message
+        ctl.feed(ThrusterCommand(40 * MS, 4, WRENCH[:3], WRENCH[3:], allowed=ALLOWED))
+        assert sum(ctl.valves_published.values()) == 2
+        assert [(x.rule, x.state, x.t_ns) for x in ctl.alerts[1:]] == [(KEEPOUT_RULE, "cleared", 40 * MS)]
+    with ControlService(ctl_side, robot, layout=LAYOUT, thruster_settings=SETTINGS) as ctl:
+        ctl.feed(ThrusterCommand(0, 0, WRENCH[:3], WRENCH[3:]))         # unknown from the start
+        assert ctl.valves_withheld == 1 and [x.state for x in ctl.alerts] == ["raised"]
 
 
 def test_open_loop_and_joints_only_command_no_valve(sessions):

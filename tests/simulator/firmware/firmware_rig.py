@@ -130,13 +130,14 @@ def expected_streams(robot, readings) -> dict:
     """Device -> [(t_ns, reading)] in send order, from docs/firmware.md's schedule."""
     exp = defaultdict(list)
     names = robot.joint_names
-    tau = thr = None
+    tau = thr = allowed = None
     for r in readings:
         t = r.t_ns
         if r.torque_cmd is not None:
             tau = np.array(r.torque_cmd)
         if r.thruster_cmd is not None:
             thr = np.array(r.thruster_cmd)
+            allowed = sum(1 << i for i, v in enumerate(r.thruster_allowed) if v)
         for k, arm in enumerate(robot.arms):
             exp[arm.name].append((t, r.ft[k]))
             for jn in arm.joint_names:
@@ -150,7 +151,7 @@ def expected_streams(robot, readings) -> dict:
         exp["valves"].append((t, sum(1 << i for i, v in enumerate(r.valves) if v)))
         if thr is not None and t % 10_000_000 == 0:
             mask = sum(1 << i for i, v in enumerate(r.valves) if v)
-            exp["thrusters"].append((t, (thr, mask)))
+            exp["thrusters"].append((t, (thr, mask, allowed)))
     return exp
 
 
@@ -193,10 +194,11 @@ def check_against_readings(robot, readings, samples, stamps: bool = True) -> dic
             elif isinstance(s, ValveCommand):
                 assert s.valves == r, f"{where}: valves {s.valves:#x} != {r:#x}"
             elif isinstance(s, ThrusterCommand):
-                w, mask = r
+                w, mask, allowed = r
                 _close(s.force_n, w[:3], TOL["force"], where + " force")
                 _close(s.moment_nm, w[3:], TOL["torque"], where + " moment")
                 assert s.valves == mask, f"{where}: valves {s.valves:#x} != {mask:#x}"
+                assert s.allowed == allowed, f"{where}: keep-out mask {s.allowed} != {allowed:#x}"
     return {dev: len(v) for dev, v in got.items()}
 
 

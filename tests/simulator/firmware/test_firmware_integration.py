@@ -57,7 +57,7 @@ def test_capture_scenario_over_buses(bus_tier):
     # docs/wire.md's budget counts exactly these frames: per arm bus per second 2 F/T + 2 joint
     # states per ms, 500 command frames, 4 nodes x 10 heartbeats
     assert fw.frames_sent["arm0"] == 2 * 1000 + 2 * 1000 + 500 + 4 * 10
-    assert fw.frames_sent["spacecraft"] == 6 * 500 + 1000 + 3 * 100 + 2 * 10
+    assert fw.frames_sent["spacecraft"] == 6 * 500 + 1000 + 4 * 100 + 2 * 10
     # and `bsc budget` (wire.budget, the DBC's cycle times) describes exactly that traffic
     for bus, rows in wire.budget(fw.wire).items():
         assert fw.frames_sent[bus] == round(sum(r.rate_hz for r in rows) * 1.0), bus
