@@ -29,7 +29,8 @@ from gateway.efforts import Alert, JointEfforts, ValveWrenches
 def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enabled: bool = True,
                     command_limit: float = 1.0, thrust_limit: float = 1.0, faults=None, progress: bool = False,
                     thrusters: bool = True,
-                    thruster_settings: ThrusterLoopSettings | None = None, thrusters_enabled: bool | None = None):
+                    thruster_settings: ThrusterLoopSettings | None = None, thrusters_enabled: bool | None = None,
+                    valve_delay_steps: int | None = None):
     """Simulator -> firmware frames -> session -> compensator -> the simulator's drives (and,
     with ``thrusters``, its valves), in lockstep in this thread. ``faults``: the firmware's fault
     injection (:class:`simulator.firmware.Faults`). ``thrusters_enabled`` (default ``enabled``):
@@ -37,7 +38,13 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
     the commands issued closed and open per arm and the flags they carried, lists the loop's
     transitions, and ``closed`` (N, p) says per step whether each arm's drives were under a
     closed-loop command, ``applied`` (N, n) is the command the drives applied, N m; ``thrusters``
-    the same for the valves (``closed`` (N,): the step's valves came from the learned wrenches)."""
+    the same for the valves (``closed`` (N,): the step's valves came from the learned wrenches).
+
+    ``valve_delay_steps`` (None: the valves of each step, computed just before it): the valves as
+    ``bsc control`` sends them, a schedule per commanded wrench (10 steps and a look-ahead of 10:
+    :meth:`ThrusterCompensator.schedule`), each given to the robot that many steps after the step
+    that carried the commanded wrench: the real-time loop's delay, deterministic (rows for steps
+    already run are lost, as on the robot)."""
     from gateway.engine import Session, Sink
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
@@ -62,6 +69,8 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
     names = list(robot.joint_names)
     cols = {a.name: [names.index(f"{a.name}/{j}") for j in a.joint_names] for a in robot.arms}
     ready: list[str] = []
+    sent: list[int] = []                                # commanded wrenches answered with a schedule
+    inbox: list[tuple] = []                             # (due step, rows, first step's t_ns, closed)
 
     class Feed(Sink):
         def emit(self, key, obj, log_ns) -> None:
@@ -79,6 +88,12 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
             elif isinstance(obj, ThrusterCommand):
                 thr.observe(obj)                            # with the keep-out mask on the wire
                 have_demand = True
+                if valve_delay_steps is not None and (not sent or obj.t_ns > sent[-1]):
+                    sent.append(obj.t_ns)
+                    v = thr.schedule(obj.t_ns + DT_NS, 10, DT_NS, lookahead=10)
+                    rows = (np.array(v.masks(), dtype=np.int64)[:, None] & bits) != 0
+                    inbox.append((sim.k + valve_delay_steps, rows, v.t_ns, v.closed))
+                    thr_count["closed" if v.closed else "open"] += 1        # here: schedules
             elif isinstance(obj, Alert):
                 thr.alert(obj)
 
@@ -92,6 +107,11 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
     feed = ses.feed
     with SimProgress(scenario.name + " (compensated)", sim.n_steps, 1e-3, enabled=progress) as bar:
         while sim.k < sim.n_steps:
+            while inbox and inbox[0][0] <= sim.k:         # the schedules that reached the robot
+                _, rows, t_first, is_closed = inbox.pop(0)
+                sim.command_valves(rows, t_first)
+                k0 = t_first // DT_NS
+                thr_closed[max(k0, sim.k):k0 + len(rows)] = is_closed
             r = sim.step()
             for bus, msg in fw.frames(r):
                 feed(bus, msg)
@@ -110,7 +130,7 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
                 sim.command_drives(drive)
             if sim.k < sim.n_steps:
                 closed[sim.k] = state               # the drives apply it from the next step on
-                if have_demand:                     # the valves of the next step
+                if have_demand and valve_delay_steps is None:     # the valves of the next step
                     v = thr.valves(r.t_ns + DT_NS)
                     sim.command_valves((v.valves & bits) != 0, v.t_ns)
                     thr_closed[sim.k] = v.closed

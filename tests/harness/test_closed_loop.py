@@ -77,6 +77,41 @@ def test_the_closed_loop_is_deterministic(capture):
     assert np.array_equal(a.arrays["ee"], b.arrays["ee"])
 
 
+def test_valve_schedules_delivered_late_lose_their_first_rows_to_the_previous_look_ahead(capture, monkeypatch):
+    """The real-time loop's delay in lockstep: each schedule reaches the robot 3 steps after its
+    commanded wrench, so its first 3 rows are lost and those steps run on the previous schedule's
+    look-ahead, exactly; with no delay every row is applied."""
+    from gateway.control import ThrusterCompensator
+
+    sent = []
+    schedule = ThrusterCompensator.schedule
+
+    def record(self, *a, **kw):
+        v = schedule(self, *a, **kw)
+        sent.append(v)
+        return v
+
+    monkeypatch.setattr(ThrusterCompensator, "schedule", record)
+    sc = capture.replace(duration_s=0.6)
+    for delay in (0, 3):
+        sent.clear()
+        tr, info = closed_loop.run_compensated(sc, valve_delay_steps=delay)
+        thr = info["thrusters"]
+        assert len(sent) == sum(thr["commands"].values()) >= 50
+        assert thr["late"] == delay * len(sent)
+        applied = thr["applied"]
+        bits = 1 << np.arange(applied.shape[1])
+        for prev, v in zip(sent, sent[1:]):
+            k0 = v.t_ns // 1_000_000
+            rows = np.array(v.masks())
+            if k0 + 10 > len(applied):
+                break
+            before = np.array(prev.masks())[10:10 + delay]      # the previous look-ahead
+            want = np.concatenate([before, rows[delay:10]])
+            got = applied[k0:k0 + 10] @ bits
+            assert np.array_equal(got, want), f"schedule at step {k0}"
+
+
 def test_disabled_the_same_path_is_the_open_loop(capture):
     # the drives under the compensator's open-loop commands: the flight software's torque one step
     # later, so the joint torque error is the open loop's (within 5 %), not the compensated one's
