@@ -77,5 +77,5 @@ def run(args: argparse.Namespace) -> int:
             frame(svc, force=True)
             raised = sum(a.state == "raised" for a in svc.alerts)
             print(f"bsc monitor: {svc.received} samples, {raised} alert(s) raised, "
-                  f"{len(svc.alerts) - raised} cleared", file=sys.stderr)
+                  f"{len(svc.alerts) - raised} cleared ({svc.others} of them from other services)", file=sys.stderr)
     return 0

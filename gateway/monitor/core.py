@@ -44,6 +44,7 @@ class RobotState:
     last_efforts_t_ns: int = 0
     limits: dict[str, float] | None = None
     flags: tuple[str, ...] = ()
+    others: dict[tuple[str, str], Alert] = field(default_factory=dict)   # (rule, target) -> raised by others
 
 
 class Monitor:
@@ -72,6 +73,9 @@ class Monitor:
         robot = parts[1]
         st = self._robot(robot)
         self.counts["samples"] += 1
+        if isinstance(obj, Alert):
+            self._other(st, obj)
+            return []
         if recv_ns is not None:
             st.streams["/".join(parts[2:5]) if parts[2] == "efforts" else "/".join(parts[2:4])] = recv_ns
         s = self.ruleset.monitor
@@ -117,6 +121,17 @@ class Monitor:
             self.counts["ignored"] += 1
         return out
 
+    def _other(self, st: RobotState, a: Alert) -> None:
+        """An alert another service raised or cleared (the gateway's fault detector on
+        ``bsc/<robot>/alerts``, ``bsc control``'s transitions on ``commands/status``): shown
+        among the robot's active alerts while raised, never judged again here."""
+        self.counts["others"] = self.counts.get("others", 0) + 1
+        if a.state == "raised":
+            st.others[(a.rule, a.target)] = a
+        else:
+            st.others.pop((a.rule, a.target), None)
+        self.recent = (self.recent + [a])[-50:]
+
     def tick(self, now_ns: int) -> list[Alert]:
         """Stream staleness on the monitor's clock (receive times given to :meth:`feed`)."""
         out: list[Alert] = []
@@ -147,6 +162,7 @@ class Monitor:
                 "buses": dict(sorted(st.buses.items())),
                 "streams": {k: ((now_ns - v) / 1e9 if now_ns else float("nan")) for k, v in sorted(st.streams.items())},
                 "flags": st.flags,
-                "active": sorted(f"{rule}:{target}" for (r, rule, target) in self.engine.active() if r == robot),
+                "active": sorted([f"{rule}:{target}" for (r, rule, target) in self.engine.active() if r == robot]
+                                 + [f"{rule}:{target}" for rule, target in st.others]),
             }
         return snap

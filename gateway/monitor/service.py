@@ -8,7 +8,11 @@ publishers it declares). Lifecycle, as the gateway service::
     # close(): subscribers and publishers undeclared (harmless twice)
 
 Subscriptions: ``bsc/<robots>/efforts/**``, ``bsc/<robots>/sensors/commands/**``,
-``bsc/<robots>/health/**`` (``robots`` is one name or a glob chunk such as ``*``).
+``bsc/<robots>/health/**`` (``robots`` is one name or a glob chunk such as ``*``), and the alerts
+of the other services, ``bsc/<robots>/alerts`` (the gateway's thruster fault detector, another
+monitor) and ``bsc/<robots>/commands/status`` (``bsc control``'s loop transitions), from other
+sessions only (its own published alerts do not come back): listed with its own (dashboard, alert
+log, ``on_alert``), never published again.
 Queue semantics: FIFO, bounded (``queue_size``): the friction fit wants every effort sample;
 when the monitor falls behind, the NEWEST samples are refused and counted (``dropped``), never
 blocking zenoh's callback thread. Samples are processed on the ``run()`` thread, in arrival
@@ -47,7 +51,8 @@ class MonitorService:
         self.on_alert = on_alert
         self.tick_s = tick_s
         self.publish_alerts = publish
-        self.alerts: list[Alert] = []
+        self.alerts: list[Alert] = []           # its own and the other services' (``others`` of them)
+        self.others = 0
         self.received = 0
         self.rejected = 0
         self.dropped = 0
@@ -68,6 +73,11 @@ class MonitorService:
             root = f"{keys.ROOT}/{self.robots}"
             for sub in ("efforts/**", "sensors/commands/**", "health/**"):
                 self._subs.append(self.session.declare_subscriber(f"{root}/{sub}", self._on_sample))
+            import zenoh
+
+            for sub in ("alerts", "commands/status"):       # the other services' alerts
+                self._subs.append(self.session.declare_subscriber(f"{root}/{sub}", self._on_sample,
+                                                                  allowed_origin=zenoh.Locality.REMOTE))
         return self
 
     def close(self) -> None:
@@ -129,12 +139,15 @@ class MonitorService:
             n += 1
             for alert in self.monitor.feed(key, obj, recv):
                 self._emit(alert)
+            if isinstance(obj, Alert):
+                self.others += 1
+                self._emit(obj, publish=False)          # another service's
 
     def tick(self, now_ns: int | None = None) -> None:
         for alert in self.monitor.tick(time.time_ns() if now_ns is None else now_ns):
             self._emit(alert)
 
-    def _emit(self, alert: Alert) -> None:
+    def _emit(self, alert: Alert, publish: bool = True) -> None:
         self.alerts.append(alert)
         level = logging.WARNING if alert.state == "raised" else logging.INFO
         log.log(level, "%s %s %s %s/%s: %s", alert.robot, alert.state, alert.severity, alert.kind, alert.target,
@@ -142,7 +155,7 @@ class MonitorService:
         if self._log_file is not None:
             self._log_file.write(json.dumps(asdict(alert)) + "\n")
             self._log_file.flush()
-        if self.publish_alerts and not self._closed:
+        if publish and self.publish_alerts and not self._closed:
             self._publish(alert)
         if self.on_alert is not None:
             self.on_alert(alert)

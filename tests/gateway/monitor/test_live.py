@@ -116,6 +116,7 @@ def test_growing_friction_raises_one_alert_then_clears(sessions, tmp_path):
     assert cleared.since_ns == raised.since_ns and cleared.t_ns > 13.0e9 and cleared.severity == "info"
     assert all(att is not None and int(att) > 0 for _, att in col.got)
     assert len(log.read_text().splitlines()) == 2
+    assert len(svc.alerts) == 2 and svc.others == 0        # its own alerts do not come back to it
 
 
 def test_bsc_monitor_cli_runs_for_a_duration(tmp_path):
@@ -135,3 +136,46 @@ def test_bsc_monitor_bad_rules_file_is_one_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "gateway.cli", "monitor", "--rules", str(bad), "--duration", "1"],
                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
     assert out.returncode == 2 and "missing key" in out.stderr and out.stderr.count("\n") == 1
+
+
+def test_the_other_services_alerts_are_listed_and_never_published_again(sessions, tmp_path):
+    """The gateway's thruster fault (bsc/<robot>/alerts) and bsc control's transitions
+    (commands/status) show among the robot's active alerts and in the alert log while raised;
+    the monitor does not publish them again, and its own alerts do not come back to it."""
+    from gateway.monitor.dashboard import render
+    from support import subscribed, wait_until
+
+    pub_s, mon_s = sessions
+    fault = Alert(ROBOT, "thruster", "thruster7", "thruster-fault", "critical", "raised", 3_000_000_000,
+                  3_000_000_000, "thruster 7: stuck open (size 0.88 of nominal thrust)", (("thruster", 7.0),))
+    keepout = Alert(ROBOT, "thruster", "thrusters", "compensation-keepout-unknown", "warning", "raised",
+                    3_100_000_000, 3_100_000_000, "thrusters: no valve commands")
+    log = tmp_path / "alerts.jsonl"
+    pubs = {k: pub_s.declare_publisher(k) for k in (keys.alerts(ROBOT), keys.control_status(ROBOT))}
+    stop = threading.Event()
+    with MonitorService(mon_s, "*", alert_log=log) as svc:
+        runner = threading.Thread(target=svc.run, args=(stop,))
+        runner.start()
+        try:
+            for k in pubs:
+                subscribed(pub_s, k)
+            pubs[keys.alerts(ROBOT)].put(codec.encode(fault))
+            pubs[keys.control_status(ROBOT)].put(codec.encode(keepout))
+            wait_until(lambda: svc.others == 2, "the two alerts listed")
+            active = svc.monitor.snapshot()[ROBOT]["active"]
+            assert active == ["compensation-keepout-unknown:thrusters", "thruster-fault:thruster7"]
+            text = render(svc.monitor.snapshot(), svc.alerts)
+            assert "2 active alert(s)" in text and "thruster 7: stuck open" in text
+            cleared = Alert(ROBOT, "thruster", "thruster7", "thruster-fault", "info", "cleared", 5_000_000_000,
+                            3_000_000_000, "thruster 7: cleared")
+            pubs[keys.alerts(ROBOT)].put(codec.encode(cleared))
+            wait_until(lambda: svc.others == 3, "the clearing listed")
+            assert svc.monitor.snapshot()[ROBOT]["active"] == ["compensation-keepout-unknown:thrusters"]
+        finally:
+            stop.set()
+            runner.join(10)
+            for p in pubs.values():
+                p.undeclare()
+    assert [a.rule for a in svc.alerts] == ["thruster-fault", "compensation-keepout-unknown", "thruster-fault"]
+    assert not svc._pubs                                   # published nothing: none of them was its own
+    assert len(log.read_text().splitlines()) == 3
