@@ -30,7 +30,7 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
                     command_limit: float = 1.0, thrust_limit: float = 1.0, faults=None, progress: bool = False,
                     thrusters: bool = True,
                     thruster_settings: ThrusterLoopSettings | None = None, thrusters_enabled: bool | None = None,
-                    valve_delay_steps: int | None = None):
+                    valve_delay_steps=None, valve_max_age_steps: int | None = None):
     """Simulator -> firmware frames -> session -> compensator -> the simulator's drives (and,
     with ``thrusters``, its valves), in lockstep in this thread. ``faults``: the firmware's fault
     injection (:class:`simulator.firmware.Faults`). ``thrusters_enabled`` (default ``enabled``):
@@ -43,8 +43,10 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
     ``valve_delay_steps`` (None: the valves of each step, computed just before it): the valves as
     ``bsc control`` sends them, a schedule per commanded wrench (10 steps and a look-ahead of 10:
     :meth:`ThrusterCompensator.schedule`), each given to the robot that many steps after the step
-    that carried the commanded wrench: the real-time loop's delay, deterministic (rows for steps
-    already run are lost, as on the robot)."""
+    that carried the commanded wrench (an int, or one per schedule, cycled): the real-time loop's
+    delay, deterministic (rows for steps already run are lost, as on the robot). A schedule more
+    than ``valve_max_age_steps`` late is dropped whole, as :class:`ValveInbox` drops one older
+    than its ``max_age_s`` (counted in ``info["thrusters"]["too_old"]``)."""
     from gateway.engine import Session, Sink
     from robot_description.thrusters import ThrusterLayout
     from simulator.engine import Simulation
@@ -70,6 +72,9 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
     cols = {a.name: [names.index(f"{a.name}/{j}") for j in a.joint_names] for a in robot.arms}
     ready: list[str] = []
     sent: list[int] = []                                # commanded wrenches answered with a schedule
+    too_old: list[int] = []                             # schedules dropped by the robot's deadline
+    fifo: list[int] = []                                # each schedule's arrival step
+    delays = None if valve_delay_steps is None else np.atleast_1d(np.asarray(valve_delay_steps, dtype=np.int64))
     inbox: list[tuple] = []                             # (due step, rows, first step's t_ns, closed)
 
     class Feed(Sink):
@@ -88,12 +93,19 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
             elif isinstance(obj, ThrusterCommand):
                 thr.observe(obj)                            # with the keep-out mask on the wire
                 have_demand = True
-                if valve_delay_steps is not None and (not sent or obj.t_ns > sent[-1]):
+                if delays is not None and (not sent or obj.t_ns > sent[-1]):
+                    d = delays[len(sent) % len(delays)]
                     sent.append(obj.t_ns)
                     v = thr.schedule(obj.t_ns + DT_NS, 10, DT_NS, lookahead=10)
-                    rows = (np.array(v.masks(), dtype=np.int64)[:, None] & bits) != 0
-                    inbox.append((sim.k + valve_delay_steps, rows, v.t_ns, v.closed))
                     thr_count["closed" if v.closed else "open"] += 1        # here: schedules
+                    # one link, in order: a schedule never overtakes the one before it
+                    due = max(sim.k + int(d), fifo[-1] if fifo else 0)
+                    fifo.append(due)
+                    if valve_max_age_steps is not None and due - sim.k > valve_max_age_steps:
+                        too_old.append(v.t_ns)
+                        return
+                    rows = (np.array(v.masks(), dtype=np.int64)[:, None] & bits) != 0
+                    inbox.append((due, rows, v.t_ns, v.closed))
             elif isinstance(obj, Alert):
                 thr.alert(obj)
 
@@ -130,7 +142,7 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
                 sim.command_drives(drive)
             if sim.k < sim.n_steps:
                 closed[sim.k] = state               # the drives apply it from the next step on
-                if have_demand and valve_delay_steps is None:     # the valves of the next step
+                if have_demand and delays is None:      # the valves of the next step
                     v = thr.valves(r.t_ns + DT_NS)
                     sim.command_valves((v.valves & bits) != 0, v.t_ns)
                     thr_closed[sim.k] = v.closed
@@ -146,6 +158,7 @@ def run_compensated(scenario, *, settings: JointLoopSettings | None = None, enab
         thr_info = {"commands": thr_count, "flags": thr_flags,
                     "transitions": [{"t_s": e.t_ns * 1e-9, "state": e.state, "reason": e.reason} for e in thr.events],
                     "steps_external": int(sim.valves_external.sum()), "late": sim.valves_late,
+                    "too_old": len(too_old),
                     "closed": thr_closed, "applied": sim.valves_applied}
     return sim.trace, {"commands": counts, "flags": flags, "transitions": events, "closed": closed,
                        "applied": sim.drive_applied, "thrusters": thr_info}
@@ -578,12 +591,13 @@ class ValveInbox(_Inbox):
     step never goes out before it is due). A deadline, as for the drives: a schedule that arrives
     more than ``max_age_s`` after its first step's time is not applied (those steps keep the flight
     software's valves); rows for steps already run are not applied either (the simulation counts
-    them, ``valves_late``), nor are the steps no schedule covers. The flight software's keep-out
-    mask is not on the wire, so the controller may open a thruster the flight software has
-    excluded: the robot's valve driver closes it (an interlock), counted in ``keep_out_closed``
-    (valve-steps)."""
+    them, ``valves_late``), nor are the steps no schedule covers. The controller allocates within
+    the keep-out mask the commanded wrench carries (``THRUSTER_CMD_ALLOWED``); the robot's valve
+    driver still closes any thruster its flight software excludes at the step (an interlock: the
+    mask may change between a commanded wrench and a schedule's last rows), counted in
+    ``keep_out_closed`` (valve-steps)."""
 
-    def __init__(self, session, sim, *, max_age_s: float = 0.005):
+    def __init__(self, session, sim, *, max_age_s: float = 0.010):
         from gateway import keys
         from gateway.control.messages import decode_thruster_valves
 

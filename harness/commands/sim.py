@@ -71,9 +71,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="with --realtime: the thrusters' valves follow the schedules of "
                            "bsc/<robot>/commands/thrusters (bsc control's thruster loop) from the zenoh router at "
                            "ENDPOINT instead of the flight software's; waits until bsc control is connected")
-    cl_g.add_argument("--valve-max-age", type=float, default=0.005, metavar="S",
+    cl_g.add_argument("--valve-max-age", type=float, default=0.010, metavar="S",
                       help="with --valves-from: a valve schedule that arrives more than this after its first "
-                           "step is not applied; those steps keep the flight software's valves (default 0.005 s)")
+                           "step is not applied (its rows for steps still to come included); those steps keep "
+                           "the previous schedule's look-ahead, then the flight software's valves (default "
+                           "0.010 s, one commanded-wrench period: docs/control.md)")
     cl_g.add_argument("--thrust-limit", type=float, default=1.0, metavar="FRACTION",
                       help="the flight software allocates at most this fraction of each thruster's thrust "
                            "(default 1; less leaves the valves headroom for an inner loop)")

@@ -112,6 +112,17 @@ def test_valve_schedules_delivered_late_lose_their_first_rows_to_the_previous_lo
             assert np.array_equal(got, want), f"schedule at step {k0}"
 
 
+def test_valve_schedules_older_than_the_robots_deadline_are_dropped_whole(capture):
+    """Delays of 3 and 7 steps in turn, a deadline of 5: every second schedule is dropped, and
+    its steps run on the previous schedule's look-ahead; without a deadline none is."""
+    sc = capture.replace(duration_s=0.5)
+    _, kept = closed_loop.run_compensated(sc, valve_delay_steps=[3, 7])
+    _, dropped = closed_loop.run_compensated(sc, valve_delay_steps=[3, 7], valve_max_age_steps=5)
+    n = sum(kept["thrusters"]["commands"].values())
+    assert kept["thrusters"]["too_old"] == 0 and kept["thrusters"]["late"] == 5 * n - (n % 2) * 2
+    assert dropped["thrusters"]["too_old"] == n // 2 and dropped["thrusters"]["late"] == 3 * (n - n // 2)
+
+
 def test_disabled_the_same_path_is_the_open_loop(capture):
     # the drives under the compensator's open-loop commands: the flight software's torque one step
     # later, so the joint torque error is the open loop's (within 5 %), not the compensated one's
