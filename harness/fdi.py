@@ -23,14 +23,15 @@ from pathlib import Path
 
 from harness.series import _record_session
 
-FAULTS = ("stuck_open", "stuck_closed", "loss")
-EXPECTED = {"stuck_open": "stuck open", "stuck_closed": "stuck closed", "loss": "partial loss"}
+FAULTS = ("stuck_open", "stuck_closed", "loss", "leak")
+EXPECTED = {"stuck_open": "stuck open", "stuck_closed": "stuck closed", "loss": "partial loss", "leak": "leak"}
 
 
 @dataclass(frozen=True)
 class FaultCase:
-    """One session: ``fault`` None for a healthy one; ``factor``: the thrust left by a loss;
-    ``end_s``: a stuck valve follows its command again from then on (None: it stays stuck)."""
+    """One session: ``fault`` None for a healthy one; ``factor``: the thrust left by a loss, the
+    fraction of its thrust a leaking valve delivers while closed; ``end_s``: a stuck valve follows
+    its command again from then on (None: it stays stuck)."""
 
     scenario: str = "capture"
     seed: int = 7
@@ -45,7 +46,7 @@ class FaultCase:
     def name(self) -> str:
         if self.fault is None:
             return f"{self.scenario}-s{self.seed}-healthy"
-        size = f"-{1 - self.factor:.2f}" if self.fault == "loss" else ""
+        size = {"loss": f"-{1 - self.factor:.2f}", "leak": f"-{self.factor:.2f}"}.get(self.fault, "")
         end = f"-to{self.end_s:.2f}" if self.end_s is not None else ""
         return f"{self.scenario}-s{self.seed}-t{self.thruster}-{self.fault}{size}-at{self.onset_s:.2f}{end}"
 
@@ -59,8 +60,8 @@ class FaultCase:
         # before its first table, where top-level keys must be)
         base = re.sub(r"(?m)^(name|duration_s|seed)\s*=.*$", "", base)
         text = f'name = "{self.name}"\nduration_s = {float(self.duration_s)!r}\nseed = {int(self.seed)}\n' + base
-        if self.fault == "loss":
-            text += (f'\n[[degrade]]\nkind = "thruster_loss"\nthruster = {self.thruster}\n'
+        if self.fault in ("loss", "leak"):
+            text += (f'\n[[degrade]]\nkind = "thruster_{self.fault}"\nthruster = {self.thruster}\n'
                      f'onset_s = {float(self.onset_s)!r}\nfactor = {float(self.factor)!r}\n')
         elif self.fault is not None:
             state = "open" if self.fault == "stuck_open" else "closed"
@@ -143,9 +144,11 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
     t = tr["t_s"]
     j = case.thruster
     is_open = tr["valves"][:, j].astype(bool)
-    # a stuck-open valve's size is the thrust it delivers while stuck; otherwise the thrust the
-    # valve delivered while open before the onset
-    sel = is_open & ((t >= case.onset_s) if case.fault == "stuck_open" else (t < case.onset_s))
+    # a stuck-open valve's size is the thrust it delivers while stuck, a leak's the thrust while
+    # closed; otherwise the thrust the valve delivered while open before the onset
+    after = t >= case.onset_s
+    sel = (is_open & after if case.fault == "stuck_open" else ~is_open & after if case.fault == "leak"
+           else is_open & ~after)
     thrust = tr["thrust"][sel, j].mean() if sel.any() else float("nan")
     g = thrust / _max_thrust(case)
     v.theta_true = (1 - case.factor) * g if case.fault == "loss" else g
@@ -246,11 +249,12 @@ def main(argv=None) -> int:
     p.add_argument("--thruster", type=int)
     p.add_argument("--fault", choices=FAULTS)
     p.add_argument("--onset", type=float, default=3.0)
-    p.add_argument("--factor", type=float, default=0.7, help="thrust left by a loss")
+    p.add_argument("--factor", type=float, default=0.7,
+                   help="thrust left by a loss; with --fault leak, the fraction of its thrust a closed valve gives")
     p.add_argument("--end", type=float, help="a stuck valve follows its command again from this time, s")
     p.add_argument("--out", type=Path, required=True, help="the session's .mcap")
     a = p.parse_args(argv)
-    factor = a.factor if a.fault == "loss" else 1.0
+    factor = a.factor if a.fault in ("loss", "leak") else 1.0
     case = FaultCase(a.scenario, a.seed, a.duration, a.thruster, a.fault, a.onset, factor,
                      a.end if a.fault in ("stuck_open", "stuck_closed") else None)
     record(case, a.out)

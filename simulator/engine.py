@@ -49,6 +49,7 @@ from .truth import Trace
 
 DT_S = 1e-3          # physics, F/T and encoder rate: 1 kHz
 DT_NS = 1_000_000
+THRUSTER_FAULTS = ("thruster_loss", "thruster_stuck", "thruster_leak")   # the [[degrade]] kinds of the thrusters
 
 
 class DriveCommandError(SimulatorError, ValueError):
@@ -177,7 +178,7 @@ class Simulation:
         # end-effector references at every controller step, computed at once
         self._ref = self.ctrl.desired(np.arange(0, self.n_steps, self.ctrl_every) * DT_S)
         self._ref_flat = tuple(x.reshape(len(x), -1) for x in self._ref)
-        self._thr_degrade = any(d["kind"] in ("thruster_loss", "thruster_stuck") for d in self._degrade)
+        self._thr_degrade = any(d["kind"] in THRUSTER_FAULTS for d in self._degrade)
         # external valve commands (thrusters compensated through the gateway): per step, the valves
         # commanded for that millisecond by command_valves(), else the flight software's
         self.external_thrusters = external_thrusters
@@ -213,6 +214,9 @@ class Simulation:
                 raise ValueError(f"degrade: no arm {d['arm']!r} (arms: {', '.join(arms)})")
             if d["kind"] == "thruster_stuck" and d["state"] not in ("open", "closed", "free"):
                 raise ValueError("degrade: thruster_stuck state must be 'open', 'closed' or 'free'")
+            if d["kind"] == "thruster_leak" and not 0.0 <= d["factor"] <= 1.0:
+                raise ValueError(f"degrade: thruster_leak factor {d['factor']:g} outside 0..1 (a fraction of the "
+                                 "valve's thrust while it is closed)")
 
     # Every degradation is a function of time: from its onset on, it sets its value at every step
     # (in list order, so a later entry for the same item wins).
@@ -233,21 +237,25 @@ class Simulation:
         if changed:
             self.dyn.friction = Friction(coulomb, static, fr.viscous_nms)
 
-    def _thruster_degradations(self, t: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """Per-step (gain factor, stuck state) arrays (len(t), m), or None when there are none."""
-        kinds = [d for d in self._degrade if d["kind"] in ("thruster_loss", "thruster_stuck")]
+    def _thruster_degradations(self, t: np.ndarray) -> tuple:
+        """Per-step (gain factor, stuck state, leak) arrays (len(t), m), each None when no
+        degradation sets it."""
+        kinds = [d for d in self._degrade if d["kind"] in THRUSTER_FAULTS]
         if not kinds:
-            return None, None
+            return None, None, None
         m = self.layout.n
         factor, stuck = np.ones((len(t), m)), np.zeros((len(t), m), dtype=int)
+        leak = np.zeros((len(t), m)) if any(d["kind"] == "thruster_leak" for d in kinds) else None
         for d in kinds:
             on = t >= d["onset_s"]
             if d["kind"] == "thruster_loss":
                 factor[on, d["thruster"]] = d["factor"]
+            elif d["kind"] == "thruster_leak":
+                leak[on, d["thruster"]] = d["factor"]                          # type: ignore[index]
             else:
                 stuck[on, d["thruster"]] = {"open": 1, "closed": -1, "free": 0}[d["state"]]   # free: as commanded again
         self.thr_err.degrade, self.thr_err.stuck = factor[-1].copy(), stuck[-1].copy()
-        return factor, stuck
+        return factor, stuck, leak
 
     def _ft_drift(self, t: np.ndarray) -> np.ndarray | None:
         """Per-step F/T bias drift (len(t), p, 6), or None when there is none."""
@@ -321,10 +329,10 @@ class Simulation:
         self._chunk_valves = commanded
         if self.external_thrusters:
             return
-        factor = stuck = None
+        factor = stuck = leak = None
         if self._thr_degrade:
-            factor, stuck = self._thruster_degradations(np.arange(k, k + be) * DT_S)
-        valves, thrust = self.thr_err.run(commanded, factor, stuck)
+            factor, stuck, leak = self._thruster_degradations(np.arange(k, k + be) * DT_S)
+        valves, thrust = self.thr_err.run(commanded, factor, stuck, leak)
         self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
         A["valves"][hold] = valves[:n]
         A["thrust"][hold] = thrust[:n]
@@ -337,10 +345,10 @@ class Simulation:
         commanded = self._chunk_valves[j] if ext is None else ext
         self.valves_applied[k] = commanded
         self.valves_external[k] = ext is not None
-        factor = stuck = None
+        factor = stuck = leak = None
         if self._thr_degrade:
-            factor, stuck = self._thruster_degradations(np.array([k * DT_S]))
-        valves, thrust = self.thr_err.run(commanded[None, :], factor, stuck)
+            factor, stuck, leak = self._thruster_degradations(np.array([k * DT_S]))
+        valves, thrust = self.thr_err.run(commanded[None, :], factor, stuck, leak)
         wrench = thrust[0].dot(self.thr_err.B_actual.T)
         A = self.trace.arrays
         A["valves"][k], A["thrust"][k], A["thr_act"][k] = valves[0], thrust[0], wrench

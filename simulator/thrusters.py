@@ -193,11 +193,12 @@ class ThrusterErrors:
         self.B_actual = wrench_matrix(layout.pos_m, self.dir_actual)
 
     def run(self, commanded: np.ndarray, degrade: np.ndarray | None = None,
-            stuck: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            stuck: np.ndarray | None = None, leak: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """A chunk of L steps at once: (valves (L, n) after stuck valves, thrust (L, n) in N).
 
         ``commanded``: (L, n) PWPFM valve states; ``degrade``/``stuck``: (L, n) per-step
-        degradation factors and stuck states, or None for the current ones. The thermal state
+        degradation factors and stuck states, or None for the current ones; ``leak`` (L, n): the
+        fraction of its thrust a closed valve still delivers (a leaking seat), or None. The thermal state
         follows ``dT <- dT + heating dt valve - (dt / cooling_tau) dT`` step by step, evaluated
         in closed form over the chunk (a linear recurrence with a known input).
         """
@@ -219,6 +220,8 @@ class ThrusterErrors:
         gain = self.scatter * self.pressure * (1.0 + self.thermal * dT[:L])
         gain *= self.degrade if degrade is None else degrade
         f = v * (self.layout.max_n * gain + self.bias_n)
+        if leak is not None:
+            f = f + ~v * leak * (self.layout.max_n * gain)
         self.dT = dT[L]
         return v, f
 

@@ -81,3 +81,31 @@ def test_a_stuck_valve_is_not_in_the_valve_commands():
     assert np.array_equal(commanded[:400], actual[:400])
     assert not actual[400:, 2].any() and commanded[400:, 2].any()
     assert np.array_equal(np.delete(commanded, 2, axis=1), np.delete(actual, 2, axis=1))
+
+
+def test_a_leaking_valve_thrusts_while_closed_and_nothing_else_changes():
+    """thruster_leak: from its onset a closed valve delivers that fraction of the thrust it gives
+    open (gain, pressure, heating); before it, bit for bit the healthy run (after it the flight
+    software answers the leak); the stepped path (external valves) gives the same thrust."""
+    sc = scenario.load("capture", {"duration_s": 0.6})
+    data = dict(sc.data)
+    data["degrade"] = [{"kind": "thruster_leak", "thruster": 5, "onset_s": 0.3, "factor": 0.25}]
+    leaky = scenario._build(sc.name, sc.text, data)
+    ref, tr = Simulation(sc).run(), Simulation(leaky).run()
+    stepped = Simulation(leaky, external_thrusters=True)
+    while stepped.k < stepped.n_steps:
+        stepped.step()
+    k0 = 300
+    assert np.array_equal(tr["thrust"][:k0], ref["thrust"][:k0])
+    closed = ~tr["valves"][k0:, 5]
+    assert closed.sum() > 100
+    # while closed: a quarter of what the valve gives open, its gain (scatter, pressure; heating
+    # moves it by under 2 %) times its maximum
+    err = Simulation(leaky).thr_err
+    full = err.layout.max_n[5] * err.scatter[5] * err.pressure
+    assert np.allclose(tr["thrust"][k0:, 5][closed], 0.25 * full, rtol=0.02)
+    with pytest.raises(ValueError, match="thruster_leak factor"):
+        bad = dict(sc.data)
+        bad["degrade"] = [{"kind": "thruster_leak", "thruster": 5, "onset_s": 0.3, "factor": 1.5}]
+        Simulation(scenario._build(sc.name, sc.text, bad))
+    np.testing.assert_allclose(stepped.trace["thrust"], tr["thrust"], rtol=0, atol=1e-9)
