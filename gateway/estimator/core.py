@@ -486,6 +486,8 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
     row = out[o]
     thr = row["thruster"]
     tk.wrench(tf[0], mask, thr)
+    if cfg[13] != 0:                       # and the confirmed leaks (nothing added when none)
+        fd.add_leaks(scratch[3], scratch[5], mask, thr)
     q = jstate[:, 0]
     dq = jstate[:, 1]
     w_s = scratch[1][0, :3]

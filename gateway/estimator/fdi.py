@@ -83,7 +83,7 @@ MAX_FAULTS = 4
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
  _F_RT, _F_RC) = range(15)
 _NF = 15
-CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR = 0, 1, 2, 3, 4, 5
+CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR, DISMISSED = 0, 1, 2, 3, 4, 5, 6
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
 the filter learns from when no fault is suspected. The sample that first shows a gross fault comes
@@ -333,10 +333,15 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     confirming = False
     for f in range(nf):
         o = fbase + _NF * f
-        if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR:
+        leak_in_filter = st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK
+        if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR and not leak_in_filter:
             continue
         hyp = int(st[o + _F_HYP])
         a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
+        if leak_in_filter:
+            # the filter's measurement is corrected for the leak at its current size: its size
+            # refined on the innovation with that part added back (least squares since raised)
+            b += (st[o + _F_B] / st[o + _F_A]) * a
         st[o + _F_A] += a
         st[o + _F_B] += b
     for f in range(nf):
@@ -364,6 +369,14 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 and abs(theta - edge) * math.sqrt(st[o + _F_A]) < 3.0):
             confirming = True
             continue
+        if theta < cfg[_C_THETA_MIN + int(st[o + _F_WIN])]:
+            # measured on its own, the fault is below the smallest size its detector raises for
+            # (at or below zero, it is none): a transient, not a fault; no alarm, it may be raised again
+            st[o + _F_STAGE] = DISMISSED
+            st[_S_CLEARED] += 1.0                # no longer unresolved (its slot is reused)
+            st[_S_HDR + _RAISED * h_all + hyp] = 0.0
+            _restart(st, h_all)
+            continue
         typ = _fault_type(hyp % 2, theta)
         st[o + _F_TYPE] = typ
         _event(st, ev0, float(t_ns), hyp // 2, typ, theta, st[o + _F_STAT], st[o + _F_WIN], st[o + _F_T])
@@ -376,7 +389,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         elif typ == PARTIAL_LOSS:
             st[o + _F_STAGE] = TO_FILTER
         else:
-            st[o + _F_STAGE] = IN_DETECTOR
+            st[o + _F_STAGE] = IN_FILTER       # a leak: the filter's measurement corrected for it (leaks())
         _restart(st, h_all)                   # the detectors restart on the accommodated innovation
     # the noise level from this update, the unmodelled faults taken out: in the warm-up a running
     # mean, then an exponential one over healthy updates (not while a fault is suspected: the
@@ -506,11 +519,16 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         else:
             st[_S_BEST + w] = best
             st[_S_RUN + w] = 1.0
+        slot = nf                                 # a dismissed fault's slot first
+        for f in range(nf):
+            if st[fbase + _NF * f + _F_STAGE] == DISMISSED:
+                slot = f
+                break
         if (st[_S_RUN + w] < cfg[_C_HOLD + w] or st[_S_HDR + _RAISED * h_all + best] != 0.0 or confirming
-                or recovering or nf >= MAX_FAULTS):      # one decision at a time: a recovery looks like a new fault
+                or recovering or slot >= MAX_FAULTS):    # one decision at a time: a recovery looks like a new fault
             continue
         st[_S_HDR + _RAISED * h_all + best] = 1.0
-        o = fbase + _NF * nf
+        o = fbase + _NF * slot
         st[o + _F_HYP] = best
         st[o + _F_A] = 0.0
         st[o + _F_B] = 0.0
@@ -526,8 +544,11 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_RRUN] = 0.0
         st[o + _F_RT] = 0.0
         st[o + _F_RC] = 0.0
-        nf += 1
-        st[_S_NFAULTS] = nf
+        if slot == nf:
+            nf += 1
+            st[_S_NFAULTS] = nf
+        else:
+            st[_S_CLEARED] -= 1.0                 # the dismissed one's count given back
         confirming = True
         suspect = True
     learn = 0.0 if suspect else cfg[_C_GATE]
@@ -628,6 +649,33 @@ def unresolved(st: F64) -> bool:
 
 
 @_jit
+def leaks(st: F64, n: int, out: F64) -> None:
+    """The confirmed leaks the filter models, ``out`` (n,): valve j delivers ``out[j]`` of its
+    nominal wrench while closed (0: no leak). Their size is refined at every IMU update."""
+    fbase = _S_HDR + 6 * 2 * n
+    for j in range(n):
+        out[j] = 0.0
+    for f in range(int(st[_S_NFAULTS])):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK and st[o + _F_A] > 0.0:
+            out[int(st[o + _F_HYP]) // 2] = max(0.0, st[o + _F_B] / st[o + _F_A])
+
+
+@_jit
+def add_leaks(st: F64, Wnom: F64, mask: int | np.int64, out: F64) -> None:
+    """Add to a step's thruster wrench ``out`` (6,) what the confirmed leaks deliver: each leaking
+    valve closed in ``mask`` (as the filter takes it, :func:`valve_mask`) its size times its
+    nominal wrench (nothing when there is no leak: ``out`` bit for bit)."""
+    n = Wnom.shape[0]
+    lk = np.zeros(n)
+    leaks(st, n, lk)
+    for j in range(n):
+        if lk[j] != 0.0 and not (mask >> j) & 1:
+            for q in range(6):
+                out[q] += lk[j] * Wnom[j, q]
+
+
+@_jit
 def valve_mask(st: F64, mask: int | np.int64) -> np.int64:
     """The valves the filter should take as open in a step commanded ``mask``, bits 0..n-1: the
     confirmed stuck-open ones added, the stuck-closed ones removed; and ``mask`` itself from bit
@@ -651,7 +699,7 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
     out = []
     for f in range(int(st[_S_NFAULTS])):
         r = st[o + _NF * f:o + _NF * (f + 1)]
-        if r[_F_STAGE] == CLEARED_STAGE or r[_F_STAGE] == TO_CLEAR:
+        if r[_F_STAGE] == CLEARED_STAGE or r[_F_STAGE] == TO_CLEAR or r[_F_STAGE] == DISMISSED:
             continue
         hyp, A, B = r[_F_HYP], r[_F_A], r[_F_B]
         out.append((int(hyp) // 2, FAMILIES[int(hyp) % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
@@ -668,7 +716,10 @@ def imu_update(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
     then the detector's verdict (:func:`observe`) and the confirmed faults put into the filter
     (:func:`accommodate`). True if the sample was applied."""
     cst[tk._RSCALE] = r_scale(st)
-    if not tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel, rate, tap, st[_S_LEARN]):
+    lk = np.zeros(Wnom.shape[0])
+    leaks(st, Wnom.shape[0], lk)
+    if not tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel, rate, tap, st[_S_LEARN],
+                      lk, Wnom):
         return False
     observe(st, cfg, Wnom, Ha, tap, t_ns)
     accommodate(st, cfg, Wnom, x, P)
@@ -705,5 +756,6 @@ def run_events(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
         else:
             mk = valve_mask(st, masks[k])
             tk.wrench(x, mk, out_wrench[k])
+            add_leaks(st, Wnom, mk, out_wrench[k])
             if kd == tk.STEP:
                 tk.push_epoch(hist_t, hist_arm, hist_mask, ist, t_ns[k], arm[k], mk)

@@ -365,7 +365,8 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
 
 @_jit
 def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
-            fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float) -> bool:
+            fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float, leak: F64 | None = None,
+            Wleak: F64 | None = None) -> bool:
     """:func:`imu`, and when ``tap`` is not empty (length :func:`tap_size`) the update's
     innovation written into it before the update (``tap[TAP_APPLIED]`` 0 when nothing was
     applied). The tap only reads the state. ``learn``: the largest normalised innovation squared
@@ -374,7 +375,13 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     ``P`` are not updated (the fault detector's hold while it suspects a fault, :mod:`.fdi`); in
     between, an innovation gate (the detector's: the sample that first shows a gross fault is not
     learnt into the healthy model before the detector has seen it). True when the sample was
-    measured, learnt or not."""
+    measured, learnt or not.
+
+    ``leak`` (n,), ``Wleak`` (n, 6): valves that leak, known (the fault detector's confirmed
+    leaks, :mod:`.fdi`): valve i delivers ``leak[i] Wleak[i]`` while closed, an input the
+    measurement is corrected for before the innovation (``y -= leak_i (1 - vbar_i) Ha Wleak_i``,
+    the gyro rows ``leak_i (1 - vt_i) Wleak_i`` moment), so the filter does not learn it into the
+    valves' wrenches and the bias states. Zero (or None): the measurement as it is, bit for bit."""
     want = tap.shape[0] > 0
     if want:
         tap[TAP_APPLIED] = 0.0
@@ -494,6 +501,20 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
                 hn[3 + r] = k + 1
                 R[3 + r] = cst[_R_MOM + r] * cst[_RSCALE]
             m = 6
+    if leak is not None and Wleak is not None:
+        for i in range(n):
+            li = leak[i]
+            if li == 0.0:
+                continue
+            ca = li * (1.0 - cnt[i] / nn)
+            for r in range(3):
+                acc = 0.0
+                for q in range(6):
+                    acc += Ha[6 * r + q] * Wleak[i, q]
+                y[r] -= ca * acc
+            if m == 6:
+                for r in range(3):
+                    y[3 + r] -= li * (1.0 - vt[i]) * Wleak[i, 3 + r]
     # random walk since the last update (the whole diagonal)
     if ist[_HAVE_LAST] != 0:
         dt = max(0.0, float(t_ns - ist[_LAST_NS]) * 1e-9)
