@@ -52,7 +52,7 @@ from .thrusters import ThrusterFilterSettings
 
 if TYPE_CHECKING:
     from drivers.samples import Sample
-    from gateway.efforts import JointEfforts, ThrusterEffort
+    from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
 
 _jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 _inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always", nogil=True)
@@ -147,6 +147,31 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
         ("flags", np.uint8, (n_flags,)),
         ("cause", np.int64),                    # the input row whose arrival computed it (-1: flush)
     ])
+
+
+def valve_dtype(n_valves: int, n_flags: int) -> np.dtype:
+    """A row of the thruster filter's learned per-valve wrenches as of an epoch (what
+    :class:`gateway.efforts.ValveWrenches` publishes; :meth:`EstimatorCore.valve_row`)."""
+    return np.dtype([
+        ("t_ns", np.int64),                              # the epoch's time on the grid
+        ("wrench", np.float64, (6 * n_valves,)),         # W valve by valve: force (N), moment about C (N m)
+        ("force_sigma_n", np.float64, (n_valves,)),      # the root of each valve's force covariance's trace
+        ("flags", np.uint8, (n_flags,)),                 # the epoch's effort flags (the thruster's published)
+    ])
+
+
+@_jit
+def valve_state(x: F64, P: F64, n: int, wrench: F64, sigma: F64, r: int) -> None:
+    """Row ``r`` of ``wrench`` (k, 6 n) and ``sigma`` (k, n): the filter's ``W`` (the first 6 n
+    states of ``x``) and each valve's force uncertainty, the root of its force covariance's
+    trace summed in index order (the bits numpy's ``sum(axis=1)`` of the three gave)."""
+    for i in range(n):
+        for k in range(6):
+            wrench[r, 6 * i + k] = x[6 * i + k]
+        v = P[6 * i, 6 * i]
+        v += P[6 * i + 1, 6 * i + 1]
+        v += P[6 * i + 2, 6 * i + 2]
+        sigma[r, i] = np.sqrt(v)
 
 
 # --- the compiled state machine -------------------------------------------------------------------
@@ -726,6 +751,7 @@ class EstimatorCore:
                                             imu_steps=max(1, imu_period // period), settings=s.thrusters)
         kf = self.kf
         n_thr = self.layout.n
+        self.valve_dtype = valve_dtype(kf.n, len(self.flag_names))
         if s.fdi is not None:                 # the fault detector's state and constants (gateway/estimator/fdi.py)
             fdi_arrays = [fd.new_state(n_thr), s.fdi.config(n_thr, imu_period * 1e-9), kf.W.copy(),
                           kf.state[3][tk._HA:tk._HA + 18].copy(), np.zeros(tk.tap_size(n_thr))]
@@ -827,10 +853,27 @@ class EstimatorCore:
         valve by valve ``[force (N); moment about C (N m)]``, body frame, and each valve's force
         uncertainty (n,), N (1 sigma: the root of its force covariance's trace). Between two
         epochs' computations the filter does not move, so this is its state after the latest."""
+        rows = np.zeros(1, dtype=self.valve_dtype)
+        self.valve_row(rows, 0)
+        n = self.kf.n
+        return rows["wrench"][0].reshape(n, 6), rows["force_sigma_n"][0]
+
+    def valve_row(self, rows: np.ndarray, r: int) -> None:
+        """Row ``r`` of ``rows`` (:attr:`valve_dtype`): its ``wrench`` and ``force_sigma_n`` the
+        filter's now (:meth:`valve_wrenches`); ``t_ns`` and ``flags`` are the caller's."""
         kf = self.kf
-        n = kf.n
-        var = np.diag(kf.P)[:6 * n].reshape(n, 6)[:, :3].sum(axis=1)
-        return kf.W.copy(), np.sqrt(var)
+        valve_state(kf.x, kf.P, kf.n, rows["wrench"], rows["force_sigma_n"], r)
+
+    def valve_objects(self, rows: np.ndarray) -> list[ValveWrenches]:
+        """The published objects of valve rows (:attr:`valve_dtype`)."""
+        from gateway.efforts import ValveWrenches
+
+        out = []
+        for r in rows:
+            flags = self._flags(r["flags"], self._thr_bits, -1)
+            out.append(ValveWrenches(int(r["t_ns"]), tuple(r["wrench"].tolist()), tuple(r["force_sigma_n"].tolist()),
+                                     not flags, flags))
+        return out
 
     def thruster_flags(self, row_flags: np.ndarray) -> tuple[str, ...]:
         """The flags of the thruster effort of an effort row's ``flags``, as published."""
