@@ -91,6 +91,7 @@ class Pipeline:
         # the valve wrenches taken in the current call (rows, each one's log time), out before its efforts
         self._valves = np.zeros(4, dtype=self.estimator.valve_dtype) if self.estimator is not None else None
         self._valves_log: list[int] = []
+        self._parts = np.zeros(64, dtype=self.estimator.dtype) if self.estimator is not None else None
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -153,20 +154,25 @@ class Pipeline:
             else:
                 # fed up to each cut, the valve wrenches taken there; the efforts of every part go
                 # out together after them (one encoding of the batch: a part each costs a replay
-                # a third more time)
-                parts: list[np.ndarray] = []
-                lo = 0
+                # a third more time), gathered in a buffer of ours (the estimator's is the next
+                # call's), valid until our next call as the estimator's rows are until its
+                buf = self._parts
+                n = lo = 0
                 for hi in cuts:
                     part = est.feed(events[lo:hi])
-                    if len(part):
-                        part = part.copy()             # the estimator's buffer is the next call's
-                        part["cause"] += lo
-                        parts.append(part)
-                        self._last_epoch = (int(part["t_ns"][-1]), part["flags"][-1].copy())
+                    m = len(part)
+                    if m:
+                        if n + m > len(buf):
+                            buf = self._parts = np.concatenate([buf[:n], np.zeros(max(n + m, 2 * len(buf)),
+                                                                                   dtype=buf.dtype)])
+                        buf[n:n + m] = part
+                        buf["cause"][n:n + m] += lo
+                        n += m
                     if hi < len(events) or self._cut_last:
-                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]))
+                        last = self._last_epoch if n == 0 else (int(buf["t_ns"][n - 1]), buf["flags"][n - 1])
+                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]), last)
                     lo = hi
-                rows = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else parts
+                rows = buf[:n]
                 if self._valves_log:
                     self._emit_valves()
             if len(rows):
@@ -201,11 +207,10 @@ class Pipeline:
         self._cut_last = bool(cuts) and cuts[-1] == len(events)
         return cuts if self._cut_last else cuts + [len(events)]
 
-    def _valve_wrenches(self, log_ns: int) -> None:
+    def _valve_wrenches(self, log_ns: int, last: tuple[int, np.ndarray] | None) -> None:
         """Take the thruster filter's learned per-valve wrenches as of the latest epoch computed
-        (once per epoch), for ``bsc/<robot>/efforts/valves`` at log time ``log_ns``: out with the
-        others of the call (:meth:`_emit_valves`)."""
-        last = self._last_epoch
+        (once per epoch; ``last``: its time and effort flags), for ``bsc/<robot>/efforts/valves``
+        at log time ``log_ns``: out with the others of the call (:meth:`_emit_valves`)."""
         if last is None or last[0] == self._valves_t:
             return
         self._valves_t = last[0]
