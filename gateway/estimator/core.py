@@ -37,7 +37,6 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from drivers import kernel, wire
 from robot_description import Robot
@@ -54,8 +53,7 @@ if TYPE_CHECKING:
     from drivers.samples import Sample
     from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
-_inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always", nogil=True)
+from .jitopts import inline as _inl, jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 # The kernels' arguments: views of one int64 and one float64 buffer (ViewLayout), in groups.
 I64 = npt.NDArray[np.int64]
@@ -182,7 +180,23 @@ def _grid(si: I64, period: int, half: int, t: int) -> int:
     return c + ((t - c + half) // period) * period
 
 
-@_jit
+@_inl
+def _move_epoch(ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64, d: int, s: int) -> None:
+    """Open epoch ``s``'s rows copied to ``d`` (element by element: a row assignment wants
+    reference counting, which these kernels are compiled without)."""
+    for c in range(ep_t.shape[1]):
+        ep_t[d, c] = ep_t[s, c]
+    for c in range(ep_i.shape[1]):
+        ep_i[d, c] = ep_i[s, c]
+    for b in range(ep_ft.shape[1]):
+        for c in range(ep_ft.shape[2]):
+            ep_ft[d, b, c] = ep_ft[s, b, c]
+    for b in range(ep_j.shape[1]):
+        for c in range(ep_j.shape[2]):
+            ep_j[d, b, c] = ep_j[s, b, c]
+
+
+@_jit_alloc
 def _lock_phase(si: I64, cfg: I64, held: np.ndarray) -> None:
     """Place the grid: a boundary in the middle of the widest quiet gap between the held
     members' arrival phases. Depends only on the set of timestamps, not on their order. The
@@ -284,10 +298,7 @@ def _add(si: I64, cfg: I64, held: np.ndarray, s: Record, ep_t: I64, ep_i: I64, e
             while ep_t[k, 0] <= g:
                 k += 1
             for r in range(n_open, k, -1):     # make room, keeping time order
-                ep_t[r] = ep_t[r - 1]
-                ep_i[r] = ep_i[r - 1]
-                ep_ft[r] = ep_ft[r - 1]
-                ep_j[r] = ep_j[r - 1]
+                _move_epoch(ep_t, ep_i, ep_ft, ep_j, r, r - 1)
         ep_t[k, 0] = g
         ep_t[k, 1] = 0                       # first, last: own timestamps of its members
         ep_t[k, 2] = 0
@@ -361,10 +372,7 @@ def _compute_ready(si: I64, cfg: I64, nready: int, ep_t: I64, ep_i: I64, ep_ft: 
         _compute(si, cfg, ep_t[r], ep_i[r], ep_ft[r], ep_j[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
                  tf, scratch)
     for r in range(nready, n_open):
-        ep_t[r - nready] = ep_t[r]
-        ep_i[r - nready] = ep_i[r]
-        ep_ft[r - nready] = ep_ft[r]
-        ep_j[r - nready] = ep_j[r]
+        _move_epoch(ep_t, ep_i, ep_ft, ep_j, r - nready, r)
     si[_N_OPEN] = n_open - nready
 
 
@@ -573,37 +581,37 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
 # the state lives in one int64 and one float64 buffer, carved into views here (lay: per view
 # offset and dims, ViewLayout).
 
-@_jit
+@_jit_alloc
 def _i1(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1]]
 
 
-@_jit
+@_jit_alloc
 def _i2(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
-@_jit
+@_jit_alloc
 def _f1(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1]]
 
 
-@_jit
+@_jit_alloc
 def _f2(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
-@_jit
+@_jit_alloc
 def _f3(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2] * lay[k, 3]].reshape((lay[k, 1], lay[k, 2], lay[k, 3]))
 
 
-@_jit
+@_jit_alloc
 def _views(I: I64, F: F64, lay: I64) -> Views:
     si, cfg = _i1(I, lay, 0), _i1(I, lay, 1)
     ep_t, ep_i, jcmd_i = _i2(I, lay, 2), _i2(I, lay, 3), _i2(I, lay, 4)
@@ -648,11 +656,22 @@ def _replay_held(si: I64, cfg: I64, held: np.ndarray, ep_t: I64, ep_i: I64, ep_f
                            chain, tf, scratch)
 
 
-@_jit
+@_jit_alloc
 def feed_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, samples: np.ndarray,
                 out: np.ndarray) -> int:
     """Sample rows in arrival order; returns the number of effort rows written to ``out``."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
+    return _feed_all(si, cfg, held, samples, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                     chain, tf, scratch)
+
+
+@_jit
+def _feed_all(si: I64, cfg: I64, held: np.ndarray, samples: np.ndarray, ep_t: I64, ep_i: I64, ep_ft: F64,
+              ep_j: F64, pend: np.ndarray, out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64,
+              chain: Chain, tf: ThrusterArrays, scratch: Scratch) -> int:
+    """:func:`feed_kernel`'s loop, on the state's views (compiled without reference counting: the
+    views are its caller's, nothing here allocates, and counting every array of every call for
+    every sample cost more than the arithmetic)."""
     si[_N_OUT] = 0
     for k in range(samples.shape[0]):
         si[_CAUSE] = k
@@ -662,7 +681,7 @@ def feed_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, sa
     return n_out
 
 
-@_jit
+@_jit_alloc
 def flush_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, out: np.ndarray) -> int:
     """End of input: every waiting epoch computed with what it has; returns the rows written."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
