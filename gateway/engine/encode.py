@@ -16,16 +16,16 @@ import dataclasses
 import json
 
 import numpy as np
-from numba import njit
 
 from drivers import kernel
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
 from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
+from gateway.estimator.jitopts import jit
 from gateway.log.schema import FORM_VERSION
 
 from .floatrepr import write_float, write_int
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+_jit = jit   # numba's njit with the estimator kernels' options: no reference counting (they allocate nothing)
 
 # program ops: rows of (op, a, b, c)
 LIT, FLT, INT, BOOL, STR, FLTS, FLTS_IF, MIN_IF, FLAGS, GOOD, FLT_IF, INT_IF = range(12)
