@@ -808,6 +808,10 @@ class EstimatorCore:
         thr = common + [len(self.flag_names) - 1]             # and the thruster fault flag
         self._thr_bits = np.array(sorted(thr, key=lambda b: self.flag_names[b]), dtype=np.int64)
         self._flag_cache: dict[tuple[int, bytes], tuple[str, ...]] = {}
+        # (n_flags, n_arms + 1): 1 where a flag concerns an arm's efforts, then the thrusters'
+        self._effort_bits = np.zeros((len(self.flag_names), p + 1), dtype=np.int32)
+        for e, concern in enumerate((*self._arm_bits, self._thr_bits)):
+            self._effort_bits[concern, e] = 1
         from drivers.frames import builder
         from gateway.efforts import JointEfforts, ThrusterEffort
 
@@ -835,8 +839,8 @@ class EstimatorCore:
     def good_efforts(self, rows: np.ndarray) -> int:
         """How many efforts of the effort ``rows`` are good: per arm and for the thrusters, none of
         the flags that concern it set (as the published ``good``)."""
-        flags = rows["flags"].astype(bool)
-        return sum(int((~flags[:, bits].any(axis=1)).sum()) for bits in (*self._arm_bits, self._thr_bits))
+        hits = rows["flags"] @ self._effort_bits         # flags set that concern each effort (ints: no BLAS)
+        return int(np.count_nonzero(hits == 0))
 
     @property
     def good(self) -> int:

@@ -170,3 +170,15 @@ def test_valve_wrenches_are_the_filter_state_with_numpys_bits():
         assert sigma.tobytes() == np.sqrt(d.sum(axis=1)).tobytes()
         differ += int(((d[:, 0] + d[:, 1]) + d[:, 2] != d[:, 0] + (d[:, 1] + d[:, 2])).sum())
     assert differ > 50                     # the order of the sum shows in the bits: it is tested
+
+
+def test_good_efforts_counts_what_is_published_good(capture):
+    """The report's count of good efforts is the number of published objects with good=True."""
+    robot, layout, samples = capture
+    rows, c = _rows_in_chunks(robot, layout, samples, [len(samples)])
+    objs = c.efforts(rows)
+    good = sum(o.good for o in objs)
+    assert 0 < good < len(objs)              # warm-up and flagged epochs are not good
+    assert c.good_efforts(rows) == good
+    for lo in range(0, len(rows), 37):       # and any part of them
+        assert c.good_efforts(rows[lo:lo + 37]) == sum(o.good for o in c.efforts(rows[lo:lo + 37]))
