@@ -200,10 +200,13 @@ class Pipeline:
         self._cut_last = False
         if not len(v):
             return [len(events)]
-        w = events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS
-        seen = np.maximum.accumulate(np.concatenate(([self._valve_window], w)))
-        cuts = (v[w > seen[:-1]] + 1).tolist()
-        self._valve_window = int(seen[-1])
+        seen = self._valve_window                # the latest window opened, so far
+        cuts = []
+        for i, w in zip(v.tolist(), (events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS).tolist()):
+            if w > seen:                         # a few per call: a loop costs less than numpy's calls
+                cuts.append(i + 1)
+                seen = w
+        self._valve_window = seen
         self._cut_last = bool(cuts) and cuts[-1] == len(events)
         return cuts if self._cut_last else cuts + [len(events)]
 
