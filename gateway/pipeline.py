@@ -69,7 +69,8 @@ class Pipeline:
     def __init__(self, robot: Robot, *, emit: Emit, model_robot: Robot | None = None,
                  layout: ThrusterLayout | None = None, fd: bool = False, estimate: bool = True,
                  settings: CoreSettings | None = None, timing: SourceTiming = DEFAULT_TIMING,
-                 samples: bool = True, on_samples: RowsOut | None = None, on_efforts: RowsOut | None = None):
+                 samples: bool = True, on_samples: RowsOut | None = None, on_efforts: RowsOut | None = None,
+                 on_valves: RowsOut | None = None):
         self.robot = robot
         self.wire = wire.WireMap.from_robot(robot)
         self.name = self.wire.robot
@@ -77,7 +78,7 @@ class Pipeline:
         self._bus_index = {b: i for i, b in enumerate(self.buses)}
         self.emit = emit
         self.emit_samples = samples
-        self.on_samples, self.on_efforts = on_samples, on_efforts
+        self.on_samples, self.on_efforts, self.on_valves = on_samples, on_efforts, on_valves
         self.drivers = DriverCore(self.wire, fd=fd, timing=timing)
         model = model_robot or robot
         if [(a.name, tuple(a.joint_names)) for a in model.arms] != [(a.name, tuple(a.joint_names)) for a in robot.arms]:
@@ -87,6 +88,10 @@ class Pipeline:
         self._valve_window = np.iinfo(np.int64).min     # the latest valve-wrench window opened
         self._last_epoch: tuple[int, np.ndarray] | None = None     # (t_ns, thruster flags) of the latest effort row
         self._valves_t: int | None = None               # the epoch of the latest valve wrenches emitted
+        # the valve wrenches taken in the current call (rows, each one's log time), out before its efforts
+        self._valves = np.zeros(4, dtype=self.estimator.valve_dtype) if self.estimator is not None else None
+        self._valves_log: list[int] = []
+        self._parts = np.zeros(64, dtype=self.estimator.dtype) if self.estimator is not None else None
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -149,20 +154,27 @@ class Pipeline:
             else:
                 # fed up to each cut, the valve wrenches taken there; the efforts of every part go
                 # out together after them (one encoding of the batch: a part each costs a replay
-                # a third more time)
-                parts: list[np.ndarray] = []
-                lo = 0
+                # a third more time), gathered in a buffer of ours (the estimator's is the next
+                # call's), valid until our next call as the estimator's rows are until its
+                buf = self._parts
+                n = lo = 0
                 for hi in cuts:
                     part = est.feed(events[lo:hi])
-                    if len(part):
-                        part = part.copy()             # the estimator's buffer is the next call's
-                        part["cause"] += lo
-                        parts.append(part)
-                        self._last_epoch = (int(part["t_ns"][-1]), part["flags"][-1].copy())
+                    m = len(part)
+                    if m:
+                        if n + m > len(buf):
+                            buf = self._parts = np.concatenate([buf[:n], np.zeros(max(n + m, 2 * len(buf)),
+                                                                                   dtype=buf.dtype)])
+                        buf[n:n + m] = part
+                        buf["cause"][n:n + m] += lo
+                        n += m
                     if hi < len(events) or self._cut_last:
-                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]))
+                        last = self._last_epoch if n == 0 else (int(buf["t_ns"][n - 1]), buf["flags"][n - 1])
+                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]), last)
                     lo = hi
-                rows = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else parts
+                rows = buf[:n]
+                if self._valves_log:
+                    self._emit_valves()
             if len(rows):
                 self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
             alarms = est.thruster_alarms()
@@ -188,25 +200,47 @@ class Pipeline:
         self._cut_last = False
         if not len(v):
             return [len(events)]
-        w = events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS
-        seen = np.maximum.accumulate(np.concatenate(([self._valve_window], w)))
-        cuts = (v[w > seen[:-1]] + 1).tolist()
-        self._valve_window = int(seen[-1])
+        seen = self._valve_window                # the latest window opened, so far
+        cuts = []
+        for i, w in zip(v.tolist(), (events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS).tolist()):
+            if w > seen:                         # a few per call: a loop costs less than numpy's calls
+                cuts.append(i + 1)
+                seen = w
+        self._valve_window = seen
         self._cut_last = bool(cuts) and cuts[-1] == len(events)
         return cuts if self._cut_last else cuts + [len(events)]
 
-    def _valve_wrenches(self, log_ns: int) -> None:
-        """The thruster filter's learned per-valve wrenches as of the latest epoch computed, on
-        ``bsc/<robot>/efforts/valves`` (once per epoch)."""
-        last = self._last_epoch
+    def _valve_wrenches(self, log_ns: int, last: tuple[int, np.ndarray] | None) -> None:
+        """Take the thruster filter's learned per-valve wrenches as of the latest epoch computed
+        (once per epoch; ``last``: its time and effort flags), for ``bsc/<robot>/efforts/valves``
+        at log time ``log_ns``: out with the others of the call (:meth:`_emit_valves`)."""
         if last is None or last[0] == self._valves_t:
             return
         self._valves_t = last[0]
-        W, sigma = self.estimator.valve_wrenches()
-        flags = self.estimator.thruster_flags(last[1])
-        self.log_ns = log_ns
-        self.emit(keys.valve_wrenches(self.name),
-                  ValveWrenches(last[0], tuple(W.ravel().tolist()), tuple(sigma.tolist()), not flags, flags))
+        k = len(self._valves_log)
+        if k == len(self._valves):
+            self._valves = np.concatenate([self._valves, np.zeros_like(self._valves)])
+        self.estimator.valve_row(self._valves, k)
+        self._valves["t_ns"][k] = last[0]
+        self._valves["flags"][k] = last[1]
+        self._valves_log.append(log_ns)
+
+    def _emit_valves(self) -> None:
+        """The valve wrenches taken in this call: as rows to :attr:`on_valves` (valid until the
+        next call) or as :class:`ValveWrenches` objects to ``emit``."""
+        rows, logs = self._valves[:len(self._valves_log)], self._valves_log
+        self._valves_log = []
+        if self.on_valves is not None:
+            self.on_valves(rows, np.array(logs, dtype=np.int64))
+        else:
+            self.emit_valves(rows, logs, self.emit)
+
+    def emit_valves(self, rows: np.ndarray, log_ns: list[int], emit: Emit) -> None:
+        """Valve rows as objects to ``emit``, :attr:`log_ns` set for each."""
+        key = keys.valve_wrenches(self.name)
+        for obj, t in zip(self.estimator.valve_objects(rows), log_ns):
+            self.log_ns = t
+            emit(key, obj)
 
     def _thruster_alarms(self, alarms: list[dict]) -> None:
         """The estimator's thruster faults (gateway/estimator/fdi.py) as alerts on

@@ -335,6 +335,10 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     kinds["efforts"] += len(rows) * len(names)
                     kinds["good_efforts"] += session.pipeline.estimator.good_efforts(rows)
 
+                def valve_rows(self, session, rows, log_ns) -> None:
+                    by_key[session.encoders().valve_key] += len(rows)
+                    kinds["valve_wrenches"] += len(rows)
+
                 def emit(self, key: str, obj, log_ns: int) -> None:
                     by_key[key] += 1
                     if isinstance(obj, (DeviceHealth, BusHealth)):

@@ -16,16 +16,16 @@ import dataclasses
 import json
 
 import numpy as np
-from numba import njit
 
 from drivers import kernel
 from drivers.samples import ImuSample, JointSample, ThrusterCommand, TorqueCommand, ValveCommand, WrenchSample
-from gateway.efforts import JointEfforts, ThrusterEffort
+from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
+from gateway.estimator.jitopts import jit
 from gateway.log.schema import FORM_VERSION
 
 from .floatrepr import write_float, write_int
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+_jit = jit   # numba's njit with the estimator kernels' options: no reference counting (they allocate nothing)
 
 # program ops: rows of (op, a, b, c)
 LIT, FLT, INT, BOOL, STR, FLTS, FLTS_IF, MIN_IF, FLAGS, GOOD, FLT_IF, INT_IF = range(12)
@@ -401,6 +401,51 @@ class EffortJson(SampleJson):
         return [raw[o[k]:o[k + 1]] for k in range(len(rows) * self.per_row)]
 
 
+class ValveJson(SampleJson):
+    """Encodes the estimator's valve rows (:func:`gateway.estimator.core.valve_dtype`) as the JSON
+    of the :class:`ValveWrenches` objects :meth:`EstimatorCore.valve_objects` gives."""
+
+    def __init__(self, core):
+        self.core = core
+        n = self._n = core.kf.n
+        b = _Builder()
+        flag_tab = b.table(core.flag_names)
+        fs = b.flag_set(list(core._thr_bits))
+        pr = _Program(b, ValveWrenches.__name__)
+        for f in dataclasses.fields(ValveWrenches):                # F: wrench 6 n | force_sigma_n n; I: t
+            if f.name == "t_ns":
+                pr.field(f.name, INT, 0)
+            elif f.name == "wrench":
+                pr.field(f.name, FLTS, 0, 6 * n)
+            elif f.name == "force_sigma_n":
+                pr.field(f.name, FLTS, 6 * n, n)
+            elif f.name == "good":
+                pr.field(f.name, GOOD, fs)
+            elif f.name == "flags":
+                pr.field(f.name, FLAGS, fs, flag_tab)
+            else:
+                raise ValueError(f"ValveWrenches.{f.name}: no encoding")
+        self._progs = (pr.array(),)
+        self._arrays = b.arrays()
+        self._max_len = 200 + 32 * 7 * n + 32 * len(core.flag_names)
+
+    def encode(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(buf, offsets)``: one message per row."""
+        k, n = len(rows), self._n
+        F = np.empty((k, 7 * n))
+        F[:, :6 * n] = rows["wrench"]
+        F[:, 6 * n:] = rows["force_sigma_n"]
+        I = np.ascontiguousarray(rows["t_ns"], dtype=np.int64).reshape(k, 1)
+        return self._run(F, I, np.ascontiguousarray(rows["flags"]), np.zeros((k, 1), dtype=np.int64), 1,
+                         self._max_len)
+
+    def messages(self, rows: np.ndarray) -> list[bytes]:
+        buf, off = self.encode(rows)
+        raw = buf.tobytes()
+        o = off.tolist()
+        return [raw[o[k]:o[k + 1]] for k in range(len(rows))]
+
+
 class RowEncoders:
     """A session's rows as payloads: the encoders and the key of every message."""
 
@@ -413,6 +458,8 @@ class RowEncoders:
         joints = robot.joint_names
         self.samples = SampleJson(arms, joints)
         self.efforts = EffortJson(pipeline.estimator) if pipeline.estimator is not None else None
+        self.valves = ValveJson(pipeline.estimator) if pipeline.estimator is not None else None
+        self.valve_key = keys.valve_wrenches(name)
         self.sample_type = {kernel.WRENCH: WrenchSample, kernel.JOINT: JointSample, kernel.TORQUE: TorqueCommand,
                             kernel.IMU: ImuSample, kernel.THRUSTER: ThrusterCommand, kernel.VALVE: ValveCommand}
         self.sample_key = {kernel.WRENCH: [keys.wrench(name, a) for a in arms],
@@ -442,6 +489,19 @@ class RowEncoders:
         key, typ = self.effort_key, self.effort_type
         return [(key[k % per], typ[k % per], None if failed[k] else raw[o[k]:o[k + 1]], k // per)
                 for k in range(len(rows) * per)]
+
+    def valve_messages(self, rows: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
+        """``(key, type, payload, row)`` per valve row (payload None: not finite, encode
+        :meth:`valve_object` instead)."""
+        enc = self.valves
+        buf, off = enc.encode(rows)
+        raw, o, failed = buf.tobytes(), off.tolist(), enc.failed
+        key = self.valve_key
+        return [(key, ValveWrenches, None if failed[k] else raw[o[k]:o[k + 1]], k) for k in range(len(rows))]
+
+    def valve_object(self, rows: np.ndarray, k: int):
+        """The object of valve row ``k``."""
+        return self.valves.core.valve_objects(rows[k:k + 1])[0]
 
     def effort_object(self, rows: np.ndarray, message: int):
         """The object of effort message ``message`` (the index :meth:`effort_messages` counts)."""

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, types
+from numba import types
 from numba.extending import intrinsic
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+from gateway.estimator.jitopts import jit
+
+_jit = jit   # numba's njit with the estimator kernels' options: no reference counting (they allocate nothing)
 
 _POW5_INV_BITCOUNT = 125
 _POW5_BITCOUNT = 125

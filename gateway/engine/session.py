@@ -35,8 +35,9 @@ class Sink:
 
     A sink with ``rows = True`` takes decoded samples and efforts as rows
     (:meth:`sample_rows`, :meth:`effort_rows`: an output that encodes rows directly, never
-    building an object per message); health, alerts and the learned valve wrenches still come
-    as objects to :meth:`emit`.
+    building an object per message), and the learned valve wrenches as rows too if it overrides
+    :meth:`valve_rows`; health, alerts (and the valve wrenches otherwise) still come as objects to
+    :meth:`emit`.
     """
 
     rows = False
@@ -47,6 +48,10 @@ class Sink:
     def effort_rows(self, session: "Session", rows: np.ndarray, log_ns: np.ndarray) -> None:
         """The estimator's effort rows (:func:`gateway.estimator.core.effort_dtype`), each
         one epoch: one :class:`JointEfforts` per arm and a :class:`ThrusterEffort`."""
+
+    def valve_rows(self, session: "Session", rows: np.ndarray, log_ns: np.ndarray) -> None:
+        """The thruster filter's learned per-valve wrenches as rows
+        (:func:`gateway.estimator.core.valve_dtype`), each one :class:`ValveWrenches`."""
 
     def sample_events(self, session: "Session", events: np.ndarray, log_ns: np.ndarray) -> None:
         """Every decoded sample's event row with its log time, whether or not the session emits
@@ -80,9 +85,9 @@ class Session:
         self.sinks = list(sinks)
         self.samples = samples
         self._encoders = None
-        self._sample_memo = self._effort_memo = None
+        self._sample_memo = self._effort_memo = self._valve_memo = None
         self._sorted()
-        rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows}
+        rows = {"on_samples": self._sample_rows, "on_efforts": self._effort_rows, "on_valves": self._valve_rows}
         # pipeline_factory: a stand-in with Pipeline's interface (tests of what runs around it)
         self.pipeline = pipeline_factory(robot, emit=self._emit, model_robot=model_robot, layout=layout, fd=fd,
                                          estimate=estimate, settings=settings, timing=timing,
@@ -99,6 +104,8 @@ class Session:
     def _sorted(self) -> None:
         self._row_sinks = [s for s in self.sinks if s.rows]
         self._object_sinks = [s for s in self.sinks if not s.rows]
+        self._valve_row_sinks = [s for s in self._row_sinks if type(s).valve_rows is not Sink.valve_rows]
+        self._valve_object_sinks = [s for s in self.sinks if s not in self._valve_row_sinks]
         self._frame_sinks = [s for s in self.sinks if type(s).frame is not Sink.frame]
         self._event_sinks = [s for s in self.sinks if type(s).sample_events is not Sink.sample_events]
         if getattr(self, "pipeline", None) is not None:      # a sink added later: the rows it needs
@@ -125,6 +132,13 @@ class Session:
         memo = self._effort_memo
         if memo is None or memo[0] is not rows:
             memo = self._effort_memo = (rows, self.encoders().effort_messages(rows))
+        return memo[1]
+
+    def valve_messages(self, rows: np.ndarray) -> list:
+        """The same for a batch of valve rows."""
+        memo = self._valve_memo
+        if memo is None or memo[0] is not rows:
+            memo = self._valve_memo = (rows, self.encoders().valve_messages(rows))
         return memo[1]
 
     def encoders(self):
@@ -165,6 +179,20 @@ class Session:
             s.effort_rows(self, rows, log_ns)
         if self._object_sinks:
             self.pipeline.emit_efforts(rows, log_ns.tolist(), self._emit_objects)
+
+    def _valve_rows(self, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        self._valve_memo = None
+        for s in self._valve_row_sinks:
+            s.valve_rows(self, rows, log_ns)
+        if self._valve_object_sinks:
+            sinks = self._valve_object_sinks
+            pl = self.pipeline
+
+            def emit(key: str, obj) -> None:
+                for s in sinks:
+                    s.emit(key, obj, pl.log_ns)
+
+            pl.emit_valves(rows, log_ns.tolist(), emit)
 
     # -- input ---------------------------------------------------------------------------------
     def feed(self, bus: str, msg: can.Message, log_ns: int | None = None) -> None:

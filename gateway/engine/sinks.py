@@ -86,6 +86,9 @@ class RecorderSink(Sink):
     def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
         self._record(session.effort_messages(rows), log_ns, lambda i: session.encoders().effort_object(rows, i))
 
+    def valve_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
+        self._record(session.valve_messages(rows), log_ns, lambda i: session.encoders().valve_object(rows, i))
+
     def _record(self, messages, log_ns: np.ndarray, object_of) -> None:
         rec, logs = self.recorder, log_ns.tolist()
         batch = []

@@ -53,9 +53,9 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from . import joint_filter as jf
+from .jitopts import jit as _jit, jit_alloc as _jit_alloc   # numba's njit: IEEE, no fast-math (the bits are fixed)
 from .model import ChainLink, EstimatorModel, EstimatorModelError, skew
 
 WEIGHTS = (4.0, 4.0, 4.0, 40.0, 40.0, 40.0)
@@ -66,9 +66,6 @@ MAX_ARM_JOINTS = 6
 QR_SAFETY = 1e-4          # QR's solution is lstsq's when rcond * kappa_F stays below this
 _EPS = float(np.finfo(np.float64).eps)
 _MAX_SWEEPS = 60          # one-sided Jacobi converges quadratically: 4-7 sweeps for 6 columns
-
-# IEEE semantics (division by zero gives inf, no check); no fast-math: the bits are fixed
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 F64 = npt.NDArray[np.float64]     # any shape: each function's docstring gives it
 I64 = npt.NDArray[np.int64]
@@ -704,7 +701,7 @@ def _contact_columns(sr: F64, unit: F64, G: F64, pe: F64, w: F64) -> None:
         _c_to_sensor(sr, w, G[k])
 
 
-@_jit
+@_jit_alloc
 def _scratch(p: int, L: int) -> tuple[F64, F64, F64, F64, F64, F64, F64, F64, F64]:
     # one allocation, carved into the views _epoch uses
     sizes = (p * 6, L * 18, L * 6, L * L * 6, (L + 1) * 6, L * 6, L * L, L * 2, 42)
@@ -746,7 +743,7 @@ def _check_shapes(arm_n: I64, arm_col: I64, link: F64, wt: F64, nj: int, q: F64,
             raise ValueError("arm_n/arm_col do not fit the joint vectors")
 
 
-@_jit
+@_jit_alloc
 def epoch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
                  dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
                  arm_w: F64, dt: float, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64) -> None:
@@ -764,7 +761,7 @@ def epoch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt
            simp, ddq, full, a_s, dw_s, arm_w, gc, per, U, FU, W, Bt, Vm, cs, vec, dt, ft_ok, rate_ok, fst, fP, fc, fh)
 
 
-@_jit
+@_jit_alloc
 def batch_kernel(arm_n: I64, arm_col: I64, sensor: F64, link: F64, base: F64, wt: F64, rcond: float, q: F64,
                  dq: F64, ft: F64, thr: F64, w_s: F64, simp: F64, ddq: F64, full: F64, a_s: F64, dw_s: F64,
                  arm_w: F64, dt: float, ft_ok: I64, rate_ok: I64, fst: F64, fP: F64, fc: F64) -> None:

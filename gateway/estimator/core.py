@@ -37,7 +37,6 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from drivers import kernel, wire
 from robot_description import Robot
@@ -52,10 +51,9 @@ from .thrusters import ThrusterFilterSettings
 
 if TYPE_CHECKING:
     from drivers.samples import Sample
-    from gateway.efforts import JointEfforts, ThrusterEffort
+    from gateway.efforts import JointEfforts, ThrusterEffort, ValveWrenches
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
-_inl = njit(cache=True, fastmath=False, error_model="numpy", inline="always", nogil=True)
+from .jitopts import inline as _inl, jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 # The kernels' arguments: views of one int64 and one float64 buffer (ViewLayout), in groups.
 I64 = npt.NDArray[np.int64]
@@ -149,6 +147,31 @@ def effort_dtype(n_arms: int, n_joints: int, n_flags: int) -> np.dtype:
     ])
 
 
+def valve_dtype(n_valves: int, n_flags: int) -> np.dtype:
+    """A row of the thruster filter's learned per-valve wrenches as of an epoch (what
+    :class:`gateway.efforts.ValveWrenches` publishes; :meth:`EstimatorCore.valve_row`)."""
+    return np.dtype([
+        ("t_ns", np.int64),                              # the epoch's time on the grid
+        ("wrench", np.float64, (6 * n_valves,)),         # W valve by valve: force (N), moment about C (N m)
+        ("force_sigma_n", np.float64, (n_valves,)),      # the root of each valve's force covariance's trace
+        ("flags", np.uint8, (n_flags,)),                 # the epoch's effort flags (the thruster's published)
+    ])
+
+
+@_jit
+def valve_state(x: F64, P: F64, n: int, wrench: F64, sigma: F64, r: int) -> None:
+    """Row ``r`` of ``wrench`` (k, 6 n) and ``sigma`` (k, n): the filter's ``W`` (the first 6 n
+    states of ``x``) and each valve's force uncertainty, the root of its force covariance's
+    trace summed in index order (the bits numpy's ``sum(axis=1)`` of the three gave)."""
+    for i in range(n):
+        for k in range(6):
+            wrench[r, 6 * i + k] = x[6 * i + k]
+        v = P[6 * i, 6 * i]
+        v += P[6 * i + 1, 6 * i + 1]
+        v += P[6 * i + 2, 6 * i + 2]
+        sigma[r, i] = np.sqrt(v)
+
+
 # --- the compiled state machine -------------------------------------------------------------------
 
 @_inl
@@ -157,7 +180,23 @@ def _grid(si: I64, period: int, half: int, t: int) -> int:
     return c + ((t - c + half) // period) * period
 
 
-@_jit
+@_inl
+def _move_epoch(ep_t: I64, ep_i: I64, ep_ft: F64, ep_j: F64, d: int, s: int) -> None:
+    """Open epoch ``s``'s rows copied to ``d`` (element by element: a row assignment wants
+    reference counting, which these kernels are compiled without)."""
+    for c in range(ep_t.shape[1]):
+        ep_t[d, c] = ep_t[s, c]
+    for c in range(ep_i.shape[1]):
+        ep_i[d, c] = ep_i[s, c]
+    for b in range(ep_ft.shape[1]):
+        for c in range(ep_ft.shape[2]):
+            ep_ft[d, b, c] = ep_ft[s, b, c]
+    for b in range(ep_j.shape[1]):
+        for c in range(ep_j.shape[2]):
+            ep_j[d, b, c] = ep_j[s, b, c]
+
+
+@_jit_alloc
 def _lock_phase(si: I64, cfg: I64, held: np.ndarray) -> None:
     """Place the grid: a boundary in the middle of the widest quiet gap between the held
     members' arrival phases. Depends only on the set of timestamps, not on their order. The
@@ -259,10 +298,7 @@ def _add(si: I64, cfg: I64, held: np.ndarray, s: Record, ep_t: I64, ep_i: I64, e
             while ep_t[k, 0] <= g:
                 k += 1
             for r in range(n_open, k, -1):     # make room, keeping time order
-                ep_t[r] = ep_t[r - 1]
-                ep_i[r] = ep_i[r - 1]
-                ep_ft[r] = ep_ft[r - 1]
-                ep_j[r] = ep_j[r - 1]
+                _move_epoch(ep_t, ep_i, ep_ft, ep_j, r, r - 1)
         ep_t[k, 0] = g
         ep_t[k, 1] = 0                       # first, last: own timestamps of its members
         ep_t[k, 2] = 0
@@ -336,10 +372,7 @@ def _compute_ready(si: I64, cfg: I64, nready: int, ep_t: I64, ep_i: I64, ep_ft: 
         _compute(si, cfg, ep_t[r], ep_i[r], ep_ft[r], ep_j[r], pend, out, jstate, jcmd, jcmd_i, thr_cmd, chain,
                  tf, scratch)
     for r in range(nready, n_open):
-        ep_t[r - nready] = ep_t[r]
-        ep_i[r - nready] = ep_i[r]
-        ep_ft[r - nready] = ep_ft[r]
-        ep_j[r - nready] = ep_j[r]
+        _move_epoch(ep_t, ep_i, ep_ft, ep_j, r - nready, r)
     si[_N_OPEN] = n_open - nready
 
 
@@ -550,37 +583,37 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
 # the state lives in one int64 and one float64 buffer, carved into views here (lay: per view
 # offset and dims, ViewLayout).
 
-@_jit
+@_jit_alloc
 def _i1(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1]]
 
 
-@_jit
+@_jit_alloc
 def _i2(I: I64, lay: I64, k: int) -> I64:
     o = lay[k, 0]
     return I[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
-@_jit
+@_jit_alloc
 def _f1(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1]]
 
 
-@_jit
+@_jit_alloc
 def _f2(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2]].reshape((lay[k, 1], lay[k, 2]))
 
 
-@_jit
+@_jit_alloc
 def _f3(F: F64, lay: I64, k: int) -> F64:
     o = lay[k, 0]
     return F[o:o + lay[k, 1] * lay[k, 2] * lay[k, 3]].reshape((lay[k, 1], lay[k, 2], lay[k, 3]))
 
 
-@_jit
+@_jit_alloc
 def _views(I: I64, F: F64, lay: I64) -> Views:
     si, cfg = _i1(I, lay, 0), _i1(I, lay, 1)
     ep_t, ep_i, jcmd_i = _i2(I, lay, 2), _i2(I, lay, 3), _i2(I, lay, 4)
@@ -625,11 +658,22 @@ def _replay_held(si: I64, cfg: I64, held: np.ndarray, ep_t: I64, ep_i: I64, ep_f
                            chain, tf, scratch)
 
 
-@_jit
+@_jit_alloc
 def feed_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, samples: np.ndarray,
                 out: np.ndarray) -> int:
     """Sample rows in arrival order; returns the number of effort rows written to ``out``."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
+    return _feed_all(si, cfg, held, samples, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                     chain, tf, scratch)
+
+
+@_jit
+def _feed_all(si: I64, cfg: I64, held: np.ndarray, samples: np.ndarray, ep_t: I64, ep_i: I64, ep_ft: F64,
+              ep_j: F64, pend: np.ndarray, out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64,
+              chain: Chain, tf: ThrusterArrays, scratch: Scratch) -> int:
+    """:func:`feed_kernel`'s loop, on the state's views (compiled without reference counting: the
+    views are its caller's, nothing here allocates, and counting every array of every call for
+    every sample cost more than the arithmetic)."""
     si[_N_OUT] = 0
     for k in range(samples.shape[0]):
         si[_CAUSE] = k
@@ -639,7 +683,7 @@ def feed_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, sa
     return n_out
 
 
-@_jit
+@_jit_alloc
 def flush_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, out: np.ndarray) -> int:
     """End of input: every waiting epoch computed with what it has; returns the rows written."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
@@ -728,6 +772,7 @@ class EstimatorCore:
                                             imu_steps=max(1, imu_period // period), settings=s.thrusters)
         kf = self.kf
         n_thr = self.layout.n
+        self.valve_dtype = valve_dtype(kf.n, len(self.flag_names))
         if s.fdi is not None:                 # the fault detector's state and constants (gateway/estimator/fdi.py)
             fdi_arrays = [fd.new_state(n_thr), s.fdi.config(n_thr, imu_period * 1e-9), kf.W.copy(),
                           kf.state[3][tk._HA:tk._HA + 18].copy(), np.zeros(tk.tap_size(n_thr))]
@@ -765,6 +810,10 @@ class EstimatorCore:
         thr = common + [len(self.flag_names) - 1]             # and the thruster fault flag
         self._thr_bits = np.array(sorted(thr, key=lambda b: self.flag_names[b]), dtype=np.int64)
         self._flag_cache: dict[tuple[int, bytes], tuple[str, ...]] = {}
+        # (n_flags, n_arms + 1): 1 where a flag concerns an arm's efforts, then the thrusters'
+        self._effort_bits = np.zeros((len(self.flag_names), p + 1), dtype=np.int32)
+        for e, concern in enumerate((*self._arm_bits, self._thr_bits)):
+            self._effort_bits[concern, e] = 1
         from drivers.frames import builder
         from gateway.efforts import JointEfforts, ThrusterEffort
 
@@ -792,8 +841,8 @@ class EstimatorCore:
     def good_efforts(self, rows: np.ndarray) -> int:
         """How many efforts of the effort ``rows`` are good: per arm and for the thrusters, none of
         the flags that concern it set (as the published ``good``)."""
-        flags = rows["flags"].astype(bool)
-        return sum(int((~flags[:, bits].any(axis=1)).sum()) for bits in (*self._arm_bits, self._thr_bits))
+        hits = rows["flags"] @ self._effort_bits         # flags set that concern each effort (ints: no BLAS)
+        return int(np.count_nonzero(hits == 0))
 
     @property
     def good(self) -> int:
@@ -829,10 +878,27 @@ class EstimatorCore:
         valve by valve ``[force (N); moment about C (N m)]``, body frame, and each valve's force
         uncertainty (n,), N (1 sigma: the root of its force covariance's trace). Between two
         epochs' computations the filter does not move, so this is its state after the latest."""
+        rows = np.zeros(1, dtype=self.valve_dtype)
+        self.valve_row(rows, 0)
+        n = self.kf.n
+        return rows["wrench"][0].reshape(n, 6), rows["force_sigma_n"][0]
+
+    def valve_row(self, rows: np.ndarray, r: int) -> None:
+        """Row ``r`` of ``rows`` (:attr:`valve_dtype`): its ``wrench`` and ``force_sigma_n`` the
+        filter's now (:meth:`valve_wrenches`); ``t_ns`` and ``flags`` are the caller's."""
         kf = self.kf
-        n = kf.n
-        var = np.diag(kf.P)[:6 * n].reshape(n, 6)[:, :3].sum(axis=1)
-        return kf.W.copy(), np.sqrt(var)
+        valve_state(kf.x, kf.P, kf.n, rows["wrench"], rows["force_sigma_n"], r)
+
+    def valve_objects(self, rows: np.ndarray) -> list[ValveWrenches]:
+        """The published objects of valve rows (:attr:`valve_dtype`)."""
+        from gateway.efforts import ValveWrenches
+
+        out = []
+        for r in rows:
+            flags = self._flags(r["flags"], self._thr_bits, -1)
+            out.append(ValveWrenches(int(r["t_ns"]), tuple(r["wrench"].tolist()), tuple(r["force_sigma_n"].tolist()),
+                                     not flags, flags))
+        return out
 
     def thruster_flags(self, row_flags: np.ndarray) -> tuple[str, ...]:
         """The flags of the thruster effort of an effort row's ``flags``, as published."""

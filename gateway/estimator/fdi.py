@@ -48,12 +48,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import thruster_kernel as tk
 from .thruster_kernel import F64, I64
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+from .jitopts import jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 RULE = "thruster-fault"                # the rule name of its alerts (live and bsc analyze)
 OPEN, LOSS = 0, 1                      # hypothesis families
@@ -293,7 +292,7 @@ def _restart(st: F64, h_all: int) -> None:
         st[_S_RUN + w] = 0.0
 
 
-@_jit
+@_jit_alloc
 def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float:
     """One IMU update's innovation ``tap`` (:func:`.thruster_kernel.imu_tap`) at ``t_ns`` into the
     detector state ``st``. Returns what the filter may learn from the next update, its ``learn``

@@ -70,16 +70,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
+from .jitopts import jit as _jit   # numba's njit, with the kernels' options
 from .model import EstimatorSettingsError
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 MAX_STATE = 2 * 6 + 12          # [dq, ddq, b, e] of an arm of at most chain_kernel.MAX_ARM_JOINTS joints
-
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 
 # the constants array (JointFilterSettings.constants)
 C_ON, C_JERK, C_WALK_F, C_WALK_T, C_RATE_VAR, C_FORCE_VAR, C_TORQUE_VAR, C_ACC0_VAR, C_BIAS0_F, C_BIAS0_T, \

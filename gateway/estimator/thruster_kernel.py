@@ -59,7 +59,6 @@ from typing import Iterable
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from robot_description.thrusters import ThrusterLayout
 
@@ -67,7 +66,7 @@ from .model import EstimatorModel
 from .thrusters import ThrusterFilter, ThrusterFilterSettings
 
 # IEEE semantics, no fast-math: the bits are fixed whatever the batch
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+from .jitopts import jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 F64 = npt.NDArray[np.float64]     # any shape: each function's docstring gives it
 I64 = npt.NDArray[np.int64]
@@ -226,7 +225,7 @@ def _downdate(P: F64, Bt: F64, m: int, ilo: int, ihi: int, jlo: int, jhi: int) -
 _APPLIED, _NOT_PD, _GATED = 0, 1, 2     # what _update did
 
 
-@_jit
+@_jit_alloc
 def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, gate: float) -> int:
     """Kalman update with the m (3 or 6) sparse rows ``hc``/``hv``/``hn`` of H (column indices,
     values, count per row), measurement ``y`` and noise variances ``R``, on the active rows and
@@ -301,7 +300,7 @@ def _update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64,
     return _APPLIED
 
 
-@_jit
+@_jit_alloc
 def imu(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64, fst: F64,
         t_ns: int, accel_imu: F64, rate_imu: F64) -> bool:
     """Apply one IMU sample at ``t_ns`` (int ns, the end of its interval): ``accel_imu`` (m/s^2)
@@ -363,7 +362,7 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
         tap[TAP_VALVES + 3 * n + i] = cvt[i] if m == 6 else 0.0
 
 
-@_jit
+@_jit_alloc
 def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
             fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float, leak: F64 | None = None,
             Wleak: F64 | None = None) -> bool:

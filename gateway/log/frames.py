@@ -29,7 +29,9 @@ from gateway.log.canframe import KEYS
 from gateway.log.context import read_summary
 from drivers.kernel import FLAG_BRS, FLAG_ERROR, FLAG_ESI, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME_DTYPE
 
-_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
+# without reference counting (numba's _nrt option): the walk writes into arrays its caller owns and
+# allocates nothing (gateway/estimator/jitopts.py says why it pays)
+_jit = njit(cache=True, fastmath=False, error_model="numpy", nogil=True, _nrt=False)
 
 _OP_MESSAGE, _OP_CHUNK = 0x05, 0x06
 _CHUNK_FIXED = struct.Struct("<QQQII")          # start, end, uncompressed size, crc, compression length

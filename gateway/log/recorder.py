@@ -300,7 +300,15 @@ class Recorder:
         """:meth:`record_encoded` for many ``(topic, cls, data, log_time_ns)`` at once, queued in
         their order (one look at the queue's room); returns how many were refused (counted)."""
         now = time.time_ns()
-        out = [(self._encoded_topic(topic, cls, t).key, int(t), now, data) for topic, cls, data, t in items]
+        keys: dict[tuple[str, type], int] = {}     # a batch is a few topics many times: each checked once
+        out = []
+        for topic, cls, data, t in items:
+            key = keys.get((topic, cls))
+            if key is None:
+                key = keys[topic, cls] = self._encoded_topic(topic, cls, t).key
+            elif t < 0:
+                raise ValueError(f"topic {topic}: log time {t} ns is negative")
+            out.append((key, int(t), now, data))
         queue = self._queue
         take = 0 if self._closed else max(0, min(len(out), self._queue_size - len(queue)))
         queue.extend(out if take == len(out) else out[:take])

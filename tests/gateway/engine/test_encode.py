@@ -90,3 +90,39 @@ def test_a_non_finite_value_is_left_to_python(run):
     per = enc.per_row
     assert enc.failed.tolist() == [0] * per + [1] + [0] * (2 * per - 1)
     assert off[per + 1] == off[per]                      # nothing written for it
+
+
+def _valve_rows(c, k=5, seed=0):
+    """``k`` valve rows of core ``c``: its filter now (the prior), with random flags."""
+    rows = np.zeros(k, dtype=c.valve_dtype)
+    rng = np.random.default_rng(seed)
+    for r in range(k):
+        c.valve_row(rows, r)
+        rows["t_ns"][r] = 1_000_000 * (r + 1)
+        rows["flags"][r] = rng.random(len(c.flag_names)) < 0.1 * r
+    rows["wrench"] *= rng.uniform(0.5, 2.0, rows["wrench"].shape)     # values of every magnitude
+    rows["wrench"][0, 0] = -0.0
+    return rows
+
+
+@pytest.mark.parametrize("form", ["zenoh", "log"])
+def test_valve_wrenches_as_their_objects_would_be(run, form):
+    from gateway.engine.encode import ValveJson
+
+    robot, c, _ = run
+    rows = _valve_rows(c)
+    enc = ValveJson(c)
+    objs = c.valve_objects(rows)
+    assert enc.messages(rows) == _python(objs, form) and not enc.failed.any()
+    assert any(o.flags for o in objs) and any(not o.flags for o in objs)
+
+
+def test_a_non_finite_valve_wrench_is_left_to_python(run):
+    from gateway.engine.encode import ValveJson
+
+    robot, c, _ = run
+    rows = _valve_rows(c, 3)
+    rows["force_sigma_n"][1, 2] = np.inf
+    enc = ValveJson(c)
+    buf, off = enc.encode(rows)
+    assert enc.failed.tolist() == [0, 1, 0] and off[2] == off[1]

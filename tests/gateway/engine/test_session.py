@@ -140,3 +140,31 @@ def test_recorder_sink_writes_rows_in_the_order_they_were_fed(robot, frames, tmp
             ses.feed_frames(rows[150:])
     got = [(b, round(m.timestamp * 1e9), m.arbitration_id) for b, _, m in iter_can_frames(path)]
     assert got == [(b, round(m.timestamp * 1e9), m.arbitration_id) for b, m in pairs]
+
+
+class ValveRows(Rows):
+    """A row sink that takes the learned valve wrenches as rows too (as the recorder's sink does)."""
+
+    def __init__(self):
+        super().__init__()
+        self.valves = []
+
+    def valve_rows(self, session, rows, log_ns):
+        self.valves.append((rows.copy(), log_ns.copy(), [d for _, _, d, _ in session.valve_messages(rows)]))
+
+
+@pytest.mark.parametrize("form", ["zenoh", "log"])
+def test_valve_rows_to_the_sinks_that_take_them_the_objects_bytes(robot, frames, form):
+    from gateway import codec
+    from gateway.log.schema import dataclass_json
+
+    objs, rows = Objects(), ValveRows()
+    ses = _run(robot, frames, [objs, rows])
+    valves = [(o, t) for _, o, t in objs.got if isinstance(o, ValveWrenches)]
+    assert len(valves) >= 50
+    assert not [v for v in rows.health if isinstance(v, ValveWrenches)]     # rows, not objects as well
+    got = np.concatenate([r for r, _, _ in rows.valves])
+    assert ses.pipeline.estimator.valve_objects(got) == [o for o, _ in valves]
+    assert np.concatenate([t for _, t, _ in rows.valves]).tolist() == [t for _, t in valves]
+    python = [codec.encode(o) if form == "zenoh" else dataclass_json(ValveWrenches)(o).encode() for o, _ in valves]
+    assert [d for _, _, ds in rows.valves for d in ds] == python

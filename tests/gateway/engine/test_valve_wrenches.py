@@ -55,9 +55,9 @@ def valve_records(robot, fl, split):
     valves = [(k, codec.encode(o), t) for k, o, t in sink.got if isinstance(o, ValveWrenches)]
     efforts = {o.t_ns: o for _, o, _ in sink.got if isinstance(o, ThrusterEffort)}
     order = {}
-    for k, o, _ in sink.got:
+    for k, o, t in sink.got:
         if "/efforts/" in k:
-            order.setdefault(k, []).append(o.t_ns)
+            order.setdefault(k, []).append((o.t_ns, t))      # and its log time: the frame that made it
     return valves, efforts, order
 
 
@@ -105,6 +105,7 @@ def test_the_same_bytes_however_the_frames_are_split(run, split):
     other, _, other_order = valve_records(robot, fl, split)
     assert len(one) > 100
     assert [p for _, p, _ in other] == [p for _, p, _ in one]
+    assert [t for _, _, t in other] == [t for _, _, t in one]
     # and every effort key the same sequence (within one call the records come before the efforts)
     assert other_order == order
 

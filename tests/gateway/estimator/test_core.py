@@ -151,3 +151,34 @@ def test_no_samples_no_efforts():
     c = core.EstimatorCore(robot_description.load("paper_robot"))
     assert len(c.feed(np.zeros(0, dtype=core.SAMPLE_DTYPE))) == 0
     assert len(c.flush()) == 0 and c.epochs == 0 and not math.isnan(c.period_ns)
+
+
+def test_valve_wrenches_are_the_filter_state_with_numpys_bits():
+    """The learned valve wrenches (published): W as the filter holds it and each valve's force
+    sigma the root of its force covariance's trace, summed in index order, which is the bits the
+    numpy form (diag, sum over the three, sqrt) gave; checked on covariances of every scale."""
+    c = core.EstimatorCore(robot_description.load("paper_robot"))
+    n = c.kf.n
+    rng = np.random.default_rng(7)
+    differ = 0
+    for _ in range(50):
+        c.kf.P[...] = rng.random(c.kf.P.shape) * 10.0 ** rng.uniform(-8, 4, c.kf.P.shape)
+        c.kf.x[:6 * n] = rng.normal(size=6 * n)
+        W, sigma = c.valve_wrenches()
+        d = np.diag(c.kf.P)[:6 * n].reshape(n, 6)[:, :3]
+        assert W.tobytes() == c.kf.W.tobytes()
+        assert sigma.tobytes() == np.sqrt(d.sum(axis=1)).tobytes()
+        differ += int(((d[:, 0] + d[:, 1]) + d[:, 2] != d[:, 0] + (d[:, 1] + d[:, 2])).sum())
+    assert differ > 50                     # the order of the sum shows in the bits: it is tested
+
+
+def test_good_efforts_counts_what_is_published_good(capture):
+    """The report's count of good efforts is the number of published objects with good=True."""
+    robot, layout, samples = capture
+    rows, c = _rows_in_chunks(robot, layout, samples, [len(samples)])
+    objs = c.efforts(rows)
+    good = sum(o.good for o in objs)
+    assert 0 < good < len(objs)              # warm-up and flagged epochs are not good
+    assert c.good_efforts(rows) == good
+    for lo in range(0, len(rows), 37):       # and any part of them
+        assert c.good_efforts(rows[lo:lo + 37]) == sum(o.good for o in c.efforts(rows[lo:lo + 37]))

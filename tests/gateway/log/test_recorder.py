@@ -379,7 +379,7 @@ def test_frames_given_as_rows_take_any_channel_a_bus_may_have(channel):
 def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_path):
     """record_encoded_many (the row sinks' path): a batch that declares new topics half way is
     written in its own order, and what the queue has no room for is refused and counted."""
-    from gateway.efforts import Alert
+    from gateway.efforts import Alert, ThrusterEffort
     from gateway.log.schema import dataclass_json
     from gateway.log.reader import iter_file_order
 
@@ -396,3 +396,10 @@ def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_pa
     with Recorder(tmp_path / "full.mcap", queue_size=4) as rec:
         refused = rec.record_encoded_many(batch)
         assert 5 <= refused <= 9 and rec.stats.dropped_queue_full == refused
+
+    # every record is checked, not only the first of its topic; a wrong type or time refuses the batch
+    with Recorder(tmp_path / "bad.mcap") as rec:
+        with pytest.raises(ValueError, match="negative"):
+            rec.record_encoded_many(batch[:4] + [(batch[4][0], Alert, batch[4][2], -1)])
+        with pytest.raises(TypeError):
+            rec.record_encoded_many([(batch[0][0], Alert, batch[0][2], 10), (batch[0][0], ThrusterEffort, b"{}", 11)])
