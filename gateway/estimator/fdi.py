@@ -664,14 +664,18 @@ def leaks(st: F64, n: int, out: F64) -> None:
 def add_leaks(st: F64, Wnom: F64, mask: int | np.int64, out: F64) -> None:
     """Add to a step's thruster wrench ``out`` (6,) what the confirmed leaks deliver: each leaking
     valve closed in ``mask`` (as the filter takes it, :func:`valve_mask`) its size times its
-    nominal wrench (nothing when there is no leak: ``out`` bit for bit)."""
+    nominal wrench (nothing when there is no leak: ``out`` bit for bit). A thruster has one leak
+    at most (a leak is never cleared, so never raised twice)."""
     n = Wnom.shape[0]
-    lk = np.zeros(n)
-    leaks(st, n, lk)
-    for j in range(n):
-        if lk[j] != 0.0 and not (mask >> j) & 1:
-            for q in range(6):
-                out[q] += lk[j] * Wnom[j, q]
+    fbase = _S_HDR + 6 * 2 * n
+    for f in range(int(st[_S_NFAULTS])):
+        o = fbase + _NF * f
+        if st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK and st[o + _F_A] > 0.0:
+            j = int(st[o + _F_HYP]) // 2
+            th = max(0.0, st[o + _F_B] / st[o + _F_A])
+            if th != 0.0 and not (mask >> j) & 1:
+                for q in range(6):
+                    out[q] += th * Wnom[j, q]
 
 
 @_jit
@@ -707,7 +711,7 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
 
 # -- one IMU sample through the filter and the detector (live: core.py; offline: run_events) --------------
 
-@_jit
+@_jit_alloc
 def imu_update(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
                fst: F64, t_ns: int, accel: F64, rate: F64, tap: F64, st: F64, cfg: F64, Wnom: F64, Ha: F64) -> bool:
     """The thruster filter's update of one IMU sample (:func:`.thruster_kernel.imu_tap`) with the
