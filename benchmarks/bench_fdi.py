@@ -1,6 +1,6 @@
 """Thruster fault detection and isolation on the scenario family: detection rate, delay, false alarms.
 
-    python -m benchmarks.bench_fdi [--quick] [--workers 2] [--json FILE]      (or bsc bench --only fdi)
+    python -m benchmarks.bench_fdi [--quick] [--workers 2] [--json FILE] [--fault leak]   (or bsc bench --only fdi)
 
 Every case is one recorded session made by the real path (simulator -> firmware -> CAN frames ->
 drivers + estimator -> MCAP; harness/fdi.py) and read as ``bsc analyze`` reads it
@@ -16,6 +16,9 @@ repeatable):
   "within 10 s" cannot be reached in these sessions), judged on the thrusters that fired before
   the onset and were commanded after it (within one session a loss is a change of what the valve
   delivered; a valve that never fired before has nothing to compare with);
+- leak of 10 %, 20 % and 30 % of the thrust (a closed valve that still thrusts): every thruster,
+  onset uniform in [2, 3] s, 8 s sessions, judged on every thruster (a leak shows whenever the
+  valve is closed); its size is the thrust delivered closed, of nominal;
 - healthy: 20 capture and 20 three_arm sessions (seeds 500..519), no alarm allowed;
 - with ``--early``: stuck open and stuck closed of every thruster with the onset in the first
   1.5 s (uniform in [0.3, 1.5] s, session onset + 2 s; :func:`early_family`), judged as the others
@@ -47,6 +50,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 LOSS_SIZES = (0.10, 0.15, 0.20, 0.30)
+LEAK_SIZES = (0.10, 0.20, 0.30)
 EARLY_S = 1.5                # an onset before this: a fault in the filter's first convergence
 N_HEALTHY = 20
 TARGET_RATE = 0.95
@@ -74,6 +78,11 @@ def family(quick: bool = False, seed: int = 2026) -> list:
         for j in thrusters:
             onset = round(float(rng.uniform(2.0, 3.0)), 3)
             cases.append(FaultCase("capture", 100 + k, 8.0, j, "loss", onset, round(1.0 - size, 3)))
+            k += 1
+    for size in (0.30,) if quick else LEAK_SIZES:
+        for j in thrusters:
+            onset = round(float(rng.uniform(2.0, 3.0)), 3)
+            cases.append(FaultCase("capture", 700 + k, 8.0, j, "leak", onset, size))
             k += 1
     healthy = 4 if quick else N_HEALTHY
     for i in range(healthy):
@@ -154,12 +163,15 @@ def _run_case(job) -> dict:
 
 
 def run(quick: bool = False, workers: int | None = None, progress: bool = False, early: bool = False,
-        warmup_s: float | None = None) -> list[dict]:
-    """Record and judge every case; the verdicts (harness.fdi.Verdict as JSON; ``alt``: judged
-    again with the detector's warm-up at ``warmup_s``)."""
+        warmup_s: float | None = None, faults: list[str] | None = None) -> list[dict]:
+    """Record and judge every case (``faults``: only the cases of these fault types, ``healthy``
+    for the healthy sessions); the verdicts (harness.fdi.Verdict as JSON; ``alt``: judged again
+    with the detector's warm-up at ``warmup_s``)."""
     from gateway.parallel import map_jobs
 
     cases = family(quick) + (early_family(quick) if early else [])
+    if faults:
+        cases = [c for c in cases if (c.fault or "healthy") in faults]
     with tempfile.TemporaryDirectory(prefix="bsc-bench-fdi-") as tmp:
         return map_jobs(_run_case, [(c, tmp, warmup_s) for c in cases], workers=workers,
                         progress="fdi cases" if progress else None, unit="session")
@@ -185,7 +197,7 @@ def _group(case: dict) -> str | None:
 
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
-    out: dict = {"stuck": {}, "loss": {}, "healthy": {}, "per_thruster": {},
+    out: dict = {"stuck": {}, "loss": {}, "leak": {}, "healthy": {}, "per_thruster": {},
                  "errors": [f"{v['name']}: {v['error']}" for v in verdicts if "error" in v]}
     verdicts = [v for v in verdicts if "error" not in v]
     for fault in ("stuck_open", "stuck_closed", "stuck_open early", "stuck_closed early"):
@@ -217,7 +229,7 @@ def summarise(verdicts: list[dict]) -> dict:
         c = v["case"]
         if c["fault"] is None or _group(c) != c["fault"]:
             continue
-        key = c["fault"] if c["fault"] != "loss" else f"loss {1 - c['factor']:.0%}"
+        key = {"loss": f"loss {1 - c['factor']:.0%}", "leak": f"leak {c['factor']:.0%}"}.get(c["fault"], c["fault"])
         if c["fault"] == "stuck_closed":
             judged = v["commanded_duty"] > 0
         elif c["fault"] == "loss":
@@ -245,6 +257,21 @@ def summarise(verdicts: list[dict]) -> dict:
             "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
             "nrmse_oracle_median": _med([v.get("nrmse_oracle", float("nan")) for v in ok]),
             "nrmse_oracle_max": _max([v.get("nrmse_oracle", float("nan")) for v in ok]),
+        }
+    for size in sorted({v["case"]["factor"] for v in verdicts if v["case"]["fault"] == "leak"}):
+        vs = [v for v in verdicts if v["case"]["fault"] == "leak" and v["case"]["factor"] == size]
+        ok = [v for v in vs if v["named"]]
+        out["leak"][f"{size:.2f}"] = {
+            "runs": len(vs), "named": len(ok), "rate": len(ok) / len(vs) if vs else float("nan"),
+            "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
+            "theta_err_max": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
+            "wrong_alarms": sum(v["false_alarms"] for v in vs),
+            "missed": sorted(v["case"]["thruster"] for v in vs if not v["named"]),
+            "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
+            "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
+            "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
+                                             f"{v.get('nrmse_axis', '')}".strip()
+                                             for v in ok if v["nrmse_published"] > 0.05),
         }
     # per thruster, the smallest loss named (the detection-delay vs fault-size curve's edge)
     for row in out["per_thruster"].values():
@@ -291,6 +318,13 @@ def figures(quick: bool = False) -> list[dict]:
                              f"{d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
                              f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
                              f"{100 * d['nrmse_published_max']:.1f} %"))
+    for size, d in s["leak"].items():
+        rows.append(row(f"leak {float(size):.0%}: named within the session", 100 * d["rate"], "% of runs",
+                        note=f"{d['named']}/{d['runs']}; median delay {d['delay_median_s']:.2f} s, max "
+                             f"{d['delay_max_s']:.2f} s; size error max {d['theta_err_max']:.3f}; wrong alarms "
+                             f"{d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
+                             f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
+                             f"{100 * d['nrmse_published_max']:.1f} %"))
     for scen, d in s["healthy"].items():
         rows.append(row(f"false alarms, {d['sessions']} healthy {scen} sessions", d["false_alarms"], "alarms",
                         target="0", ok=d["false_alarms"] == 0))
@@ -307,9 +341,12 @@ def main(argv=None) -> int:
     p.add_argument("--early", action="store_true", help="also stuck valves with the onset in the first 1.5 s")
     p.add_argument("--warmup", type=float, metavar="S",
                    help="also judge every session with the detector's warm-up at S seconds (offline)")
+    p.add_argument("--fault", action="append", choices=("stuck_open", "stuck_closed", "loss", "leak", "healthy"),
+                   help="only the cases of this fault type (repeatable; default: all)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
-    verdicts = run(a.quick, a.workers, progress=sys.stderr.isatty(), early=a.early, warmup_s=a.warmup)
+    verdicts = run(a.quick, a.workers, progress=sys.stderr.isatty(), early=a.early, warmup_s=a.warmup,
+                   faults=a.fault)
     s = summarise(verdicts)
     if a.warmup is not None:
         s[f"warmup_{a.warmup:g}"] = summarise([v["alt"] for v in verdicts if "alt" in v])

@@ -21,6 +21,9 @@ def test_family_covers_every_thruster_and_fault():
     for size in bench_fdi.LOSS_SIZES:
         got = [c for c in cases if c.fault == "loss" and c.factor == pytest.approx(1 - size)]
         assert sorted(c.thruster for c in got) == list(range(n))
+    for size in bench_fdi.LEAK_SIZES:
+        got = [c for c in cases if c.fault == "leak" and c.factor == pytest.approx(size)]
+        assert sorted(c.thruster for c in got) == list(range(n)) and all(2.0 <= c.onset_s <= 3.0 for c in got)
     healthy = [c for c in cases if c.fault is None]
     assert sorted({c.scenario for c in healthy}) == ["capture", "three_arm"] and len(healthy) == 2 * bench_fdi.N_HEALTHY
     assert len({c.seed for c in cases if c.scenario == "capture"}) == len([c for c in cases if c.scenario == "capture"])
@@ -43,6 +46,7 @@ def test_summary_counts_what_the_targets_count():
           _v("loss", 3, factor=0.85, delay=1.5), _v("loss", 4, factor=0.85, named=False, duty=0.0),
           _v("loss", 5, factor=0.85, named=False),
           {**_v("loss", 6, factor=0.85, named=False), "theta_true": float("nan")},
+          _v("leak", 7, factor=0.2, delay=0.8), _v("leak", 8, factor=0.2, named=False, false=1),
           _v(None, None, named=False, false=0), _v(None, None, named=False, false=2, scenario="three_arm")]
     s = bench_fdi.summarise(vs)
     so = s["stuck"]["stuck_open"]
@@ -53,6 +57,9 @@ def test_summary_counts_what_the_targets_count():
     loss = s["loss"]["0.15"]
     assert (loss["judged"], loss["named"], loss["missed"]) == (2, 1, [5]) and loss["delay_max_s"] == 1.5
     assert s["per_thruster"]["3"]["smallest loss named"] == "15 %" and s["per_thruster"]["6"]["loss 15%"] == "-"
+    leak = s["leak"]["0.20"]
+    assert (leak["runs"], leak["named"], leak["missed"], leak["wrong_alarms"]) == (2, 1, [8], 1)
+    assert s["per_thruster"]["7"]["leak 20%"] == "0.80 s" and s["per_thruster"]["8"]["leak 20%"] == "missed"
     assert s["healthy"] == {"capture": {"sessions": 1, "false_alarms": 0},
                             "three_arm": {"sessions": 1, "false_alarms": 2}}
 
@@ -75,3 +82,13 @@ def test_early_onsets_are_summarised_apart():
     assert s["stuck"]["stuck_open"]["judged"] == 1 and s["stuck"]["stuck_open"]["rate"] == 1.0
     assert s["stuck"]["stuck_open early"]["judged"] == 1 and s["stuck"]["stuck_open early"]["rate"] == 0.0
     assert "stuck_closed early" not in s["stuck"] and "4" not in s["per_thruster"]
+
+
+def test_run_takes_only_the_fault_types_asked_for(monkeypatch):
+    import gateway.parallel
+
+    seen = []
+    monkeypatch.setattr(gateway.parallel, "map_jobs", lambda fn, jobs, **kw: seen.extend(j[0] for j in jobs) or [])
+    bench_fdi.run(faults=["leak", "healthy"])
+    assert {c.fault for c in seen} == {"leak", None}
+    assert len(seen) == len(bench_fdi.LEAK_SIZES) * ThrusterLayout.named().n + 2 * bench_fdi.N_HEALTHY
