@@ -68,8 +68,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "root and iproute2), reporting the loop's delays (closed_loop.realtime)")
     p.add_argument("--realtime-thrusters", action="store_true",
                    help="with --realtime: the thruster loop too (bsc control --thruster-loop, the robot's valves "
-                        "from zenoh). Off by default: on a 2-core host it does not yet beat open loop on the force "
-                        "and slows the joint loop (docs/control.md)")
+                        "from zenoh). Off by default: on a 2-core host it slows the joint loop "
+                        "(docs/control.md)")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
