@@ -441,16 +441,18 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[_S_HDR + _RAISED * h_all + hyp] = 0.0       # it may fail again
         _restart(st, h_all)                             # the detectors restart on the valve as commanded
         recovering = True
-    # partial losses in the filter: has the thrust come back? Its own signature with the opposite
-    # sign (more thrust than modelled while the valve is open), a CUSUM for the loss's own size:
-    # no other hypothesis explains it, and leaks of other thrusters took the returned thrust
+    # partial losses and leaks in the filter: has the thrust come back (stopped)? Their own
+    # signature with the opposite sign (more thrust than modelled while the valve is open; less
+    # while it is closed), a CUSUM for the fault's own size: no other hypothesis explains it, and
+    # leaks of other thrusters took a returned thrust
     for f in range(nf):
         o = fbase + _NF * f
-        if st[o + _F_STAGE] != IN_FILTER or st[o + _F_TYPE] != PARTIAL_LOSS:
+        typ = st[o + _F_TYPE]
+        if st[o + _F_STAGE] != IN_FILTER or (typ != PARTIAL_LOSS and typ != LEAK):
             continue
         hyp = int(st[o + _F_HYP])
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
-        a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, LOSS, ew, g, gw)
+        a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
         rc = st[o + _F_RC] - theta * b - 0.5 * theta * theta * a
         if rc <= 0.0:
             st[o + _F_RC] = 0.0
@@ -472,7 +474,9 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         if st[o + _F_RRUN] < cfg[_C_HOLD + LONG]:
             continue
         _event(st, ev0, float(t_ns), hyp // 2, CLEARED, back, st[o + _F_RC], LONG, st[o + _F_RT])
-        st[o + _F_STAGE] = TO_CLEAR
+        # a partial loss: its lost part goes back on the valve's wrench (accommodate); a leak was
+        # never in the filter's state, only in its measurement (leaks()): it is simply gone
+        st[o + _F_STAGE] = TO_CLEAR if typ == PARTIAL_LOSS else CLEARED_STAGE
         st[_S_CLEARED] += 1.0
         st[_S_HDR + _RAISED * h_all + hyp] = 0.0        # it may be lost again
         _restart(st, h_all)                             # the detectors restart on the thrust restored
@@ -665,7 +669,7 @@ def add_leaks(st: F64, Wnom: F64, mask: int | np.int64, out: F64) -> None:
     """Add to a step's thruster wrench ``out`` (6,) what the confirmed leaks deliver: each leaking
     valve closed in ``mask`` (as the filter takes it, :func:`valve_mask`) its size times its
     nominal wrench (nothing when there is no leak: ``out`` bit for bit). A thruster has one leak
-    at most (a leak is never cleared, so never raised twice)."""
+    in the filter at most (raised again only once the earlier one is cleared)."""
     n = Wnom.shape[0]
     fbase = _S_HDR + 6 * 2 * n
     for f in range(int(st[_S_NFAULTS])):

@@ -302,3 +302,24 @@ def test_a_transient_measured_at_no_size_is_dismissed(paper):
     assert len(events) == 0 and not fdi.unresolved(st) and fdi.faults(st, layout.n) == []
     o = fdi._offsets(layout.n)[1]
     assert st[fdi._S_NFAULTS] == 1 and st[o + fdi._F_STAGE] == fdi.DISMISSED      # raised, then dismissed
+
+
+def test_a_leak_that_stops_is_cleared_and_leaves_the_model(paper):
+    """Thruster 5 leaking 30 % from 4 to 8 s: named a leak, then cleared when it stops (its own
+    signature with the opposite sign, a CUSUM for its size); the filter's measurement and the
+    published wrench no longer add it. One that stays is not cleared (the test above)."""
+    model, layout = paper
+    onset, end = 4000, 8000
+    ev, W = stream(model, layout, steps=12000, seed=41, fault=(5, "leak", onset, 0.3, end))
+    events, _, kf, st = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(5, fdi.LEAK), (5, fdi.CLEARED)]
+    t_clear, back = events[1][0], events[1][3]
+    assert 0 < (t_clear - end * STEP_NS) / 1e9 <= 1.0 and back == pytest.approx(events[0][3], abs=0.1)
+    lk = np.zeros(layout.n)
+    fdi.leaks(st, layout.n, lk)
+    assert not lk.any() and not fdi.unresolved(st) and fdi.faults(st, layout.n) == []
+    cleared = int(t_clear // STEP_NS)
+    err = detect.wrench - ev["truth"]
+    before = np.sqrt(np.mean(np.sum(err[1000:onset, :3] ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum(err[cleared + 500:, :3] ** 2, axis=1)))
+    assert after < 1.3 * before, (after, before)
