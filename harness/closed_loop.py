@@ -606,7 +606,7 @@ class ValveInbox(_Inbox):
         self.bits = 1 << np.arange(self.n)
         self.t0_ns: int | None = None
         self.pending: list = []
-        self.too_old = self.applied = self.keep_out_closed = 0
+        self.too_old = self.applied = self.keep_out_closed = self.before_start = 0
         super().__init__(session, keys.thruster_valves(sim.robot.name), decode_thruster_valves)
 
     def _take(self, v, now_ns: int) -> None:
@@ -633,6 +633,7 @@ class ValveInbox(_Inbox):
         for v in todo:
             k0 = round((v.t_ns - self.t0_ns) / DT_NS)
             if k0 < 0:
+                self.before_start += 1
                 continue
             rows = (np.array(v.masks(), dtype=np.int64)[:, None] & self.bits) != 0
             excluded = rows & ~self.sim.allowed
@@ -643,8 +644,12 @@ class ValveInbox(_Inbox):
     def summary(self) -> dict:
         delays = self._delays()
         sim = self.sim
+        with self._lock:
+            pending = len(self.pending)
         return {"received": self.received, "rejected": self.rejected, "too_old": self.too_old,
                 "applied": self.applied, "max_age_us": self.max_age_ns / 1e3,
+                # arrived after the last step went out (not applied), or dated before step 0
+                "pending_at_end": pending, "before_start": self.before_start,
                 "steps_external": int(sim.valves_external.sum()), "steps": int(sim.k),
                 "rows_late": int(sim.valves_late), "keep_out_closed": self.keep_out_closed,
                 "first_step_to_arrival_us": delays}
