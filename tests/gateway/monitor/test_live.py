@@ -159,7 +159,9 @@ def test_the_other_services_alerts_are_listed_and_never_published_again(sessions
         try:
             for k in pubs:
                 subscribed(pub_s, k)
+            # two keys, two subscriptions: their relative order is not guaranteed, so one at a time
             pubs[keys.alerts(ROBOT)].put(codec.encode(fault))
+            wait_until(lambda: svc.others == 1, "the thruster fault listed")
             pubs[keys.control_status(ROBOT)].put(codec.encode(keepout))
             wait_until(lambda: svc.others == 2, "the two alerts listed")
             active = svc.monitor.snapshot()[ROBOT]["active"]
