@@ -19,6 +19,11 @@ repeatable):
 - leak of 10 %, 20 % and 30 % of the thrust (a closed valve that still thrusts): every thruster,
   onset uniform in [2, 3] s, 8 s sessions, judged on every thruster (a leak shows whenever the
   valve is closed); its size is the thrust delivered closed, of nominal;
+- misalignment change of 10 and 20 degrees (a thruster's direction tilted, ``[[degrade]]
+  thruster_misalign``): every thruster, onset uniform in [2, 3] s, 8 s sessions, judged on the
+  thrusters commanded at least :data:`MISALIGN_DUTY` of the time after the onset (a tilt shows
+  only while the valve is open: a valve opened for a few pulses in 5 s shows almost nothing);
+  its size is the angle;
 - healthy: 20 capture and 20 three_arm sessions (seeds 500..519), no alarm allowed;
 - with ``--early``: stuck open and stuck closed of every thruster with the onset in the first
   1.5 s (uniform in [0.3, 1.5] s, session onset + 2 s; :func:`early_family`), judged as the others
@@ -51,6 +56,8 @@ import numpy as np  # noqa: E402
 
 LOSS_SIZES = (0.10, 0.15, 0.20, 0.30)
 LEAK_SIZES = (0.10, 0.20, 0.30)
+MISALIGN_DEG = (10.0, 20.0)
+MISALIGN_DUTY = 0.05
 EARLY_S = 1.5                # an onset before this: a fault in the filter's first convergence
 N_HEALTHY = 20
 TARGET_RATE = 0.95
@@ -83,6 +90,11 @@ def family(quick: bool = False, seed: int = 2026) -> list:
         for j in thrusters:
             onset = round(float(rng.uniform(2.0, 3.0)), 3)
             cases.append(FaultCase("capture", 700 + k, 8.0, j, "leak", onset, size))
+            k += 1
+    for angle in (20.0,) if quick else MISALIGN_DEG:
+        for j in thrusters:
+            onset = round(float(rng.uniform(2.0, 3.0)), 3)
+            cases.append(FaultCase("capture", 900 + k, 8.0, j, "misalign", onset, angle_deg=angle))
             k += 1
     healthy = 4 if quick else N_HEALTHY
     for i in range(healthy):
@@ -197,7 +209,7 @@ def _group(case: dict) -> str | None:
 
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
-    out: dict = {"stuck": {}, "loss": {}, "leak": {}, "healthy": {}, "per_thruster": {},
+    out: dict = {"stuck": {}, "loss": {}, "leak": {}, "misalign": {}, "healthy": {}, "per_thruster": {},
                  "errors": [f"{v['name']}: {v['error']}" for v in verdicts if "error" in v]}
     verdicts = [v for v in verdicts if "error" not in v]
     for fault in ("stuck_open", "stuck_closed", "stuck_open early", "stuck_closed early"):
@@ -229,9 +241,12 @@ def summarise(verdicts: list[dict]) -> dict:
         c = v["case"]
         if c["fault"] is None or _group(c) != c["fault"]:
             continue
-        key = {"loss": f"loss {1 - c['factor']:.0%}", "leak": f"leak {c['factor']:.0%}"}.get(c["fault"], c["fault"])
+        key = {"loss": f"loss {1 - c['factor']:.0%}", "leak": f"leak {c['factor']:.0%}",
+               "misalign": f"tilt {c.get('angle_deg', 0.0):g} deg"}.get(c["fault"], c["fault"])
         if c["fault"] == "stuck_closed":
             judged = v["commanded_duty"] > 0
+        elif c["fault"] == "misalign":
+            judged = v.get("commanded_after", 1.0) >= MISALIGN_DUTY
         elif c["fault"] == "loss":
             judged = v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"])
         else:
@@ -267,6 +282,24 @@ def summarise(verdicts: list[dict]) -> dict:
             "theta_err_max": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
             "wrong_alarms": sum(v["false_alarms"] for v in vs),
             "missed": sorted(v["case"]["thruster"] for v in vs if not v["named"]),
+            "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
+            "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
+            "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
+                                             f"{v.get('nrmse_axis', '')}".strip()
+                                             for v in ok if v["nrmse_published"] > 0.05),
+        }
+    for angle in sorted({v["case"].get("angle_deg", 0.0) for v in verdicts if v["case"]["fault"] == "misalign"}):
+        vs = [v for v in verdicts if v["case"]["fault"] == "misalign" and v["case"]["angle_deg"] == angle]
+        judged = [v for v in vs if v["named"] or v.get("commanded_after", 1.0) >= MISALIGN_DUTY]
+        ok = [v for v in judged if v["named"]]
+        out["misalign"][f"{angle:g}"] = {
+            "runs": len(vs), "judged": len(judged), "named": len(ok),
+            "rate": len(ok) / len(judged) if judged else float("nan"),
+            "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
+            "angle_err_max_deg": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
+            "wrong_alarms": sum(v["false_alarms"] for v in vs),
+            "missed": sorted(v["case"]["thruster"] for v in judged if not v["named"]),
+            "rarely_commanded": sorted(v["case"]["thruster"] for v in vs if v not in judged),
             "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
             "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
             "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
@@ -325,6 +358,13 @@ def figures(quick: bool = False) -> list[dict]:
                              f"{d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
                              f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
                              f"{100 * d['nrmse_published_max']:.1f} %"))
+    for angle, d in s["misalign"].items():
+        rows.append(row(f"misalignment {angle} deg: named within the session", 100 * d["rate"], "% of judged runs",
+                        note=f"{d['named']}/{d['judged']}; median delay {d['delay_median_s']:.2f} s, max "
+                             f"{d['delay_max_s']:.2f} s; angle error max {d['angle_err_max_deg']:.1f} deg; wrong "
+                             f"alarms {d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
+                             f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
+                             f"{100 * d['nrmse_published_max']:.1f} %"))
     for scen, d in s["healthy"].items():
         rows.append(row(f"false alarms, {d['sessions']} healthy {scen} sessions", d["false_alarms"], "alarms",
                         target="0", ok=d["false_alarms"] == 0))
@@ -341,7 +381,8 @@ def main(argv=None) -> int:
     p.add_argument("--early", action="store_true", help="also stuck valves with the onset in the first 1.5 s")
     p.add_argument("--warmup", type=float, metavar="S",
                    help="also judge every session with the detector's warm-up at S seconds (offline)")
-    p.add_argument("--fault", action="append", choices=("stuck_open", "stuck_closed", "loss", "leak", "healthy"),
+    p.add_argument("--fault", action="append",
+                   choices=("stuck_open", "stuck_closed", "loss", "leak", "misalign", "healthy"),
                    help="only the cases of this fault type (repeatable; default: all)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()

@@ -18,5 +18,7 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # above the healthy noise level; the learned per-valve wrenches (efforts/valves). 5: a confirmed
 # leak modelled in the thruster filter's measurement and the published wrench, a fault measured
 # below its smallest size dismissed (gateway/estimator/fdi.py); the thruster command's keep-out
-# mask (ThrusterCommand.allowed, drivers). Healthy sessions: the same bits as 4.
-KERNELS = "5"
+# mask (ThrusterCommand.allowed, drivers). Healthy sessions: the same bits as 4. 6: a thruster's
+# misalignment change (a tilt of its thrust) a hypothesis of the fault detector, named and put into
+# the thruster filter (gateway/estimator/fdi.py).
+KERNELS = "6"

@@ -285,6 +285,8 @@ DOCS = {
     "estimator.fdi.confirm_long": "partial losses: IMU updates after that over which the size is estimated",
     "estimator.fdi.suspect": "above this GLR (or 3/4 of h_long) the thruster filter stops learning",
     "estimator.fdi.warmup_s": "no alarm while the filter converges from its prior, s",
+    "estimator.fdi.tilt_s": "misalignment changes: the forgetting window of each thruster's tilt GLR, s",
+    "estimator.fdi.tilt_min_deg": "misalignment changes: smallest tilt alarmed, degrees",
     "recording": "Recording the session (docs/recording.md).",
     "recording.path": "record the session to this MCAP file (unset: no recording)",
 }

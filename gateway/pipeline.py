@@ -244,9 +244,10 @@ class Pipeline:
 
     def _thruster_alarms(self, alarms: list[dict]) -> None:
         """The estimator's thruster faults (gateway/estimator/fdi.py) as alerts on
-        ``bsc/<robot>/alerts``: critical for a stuck valve, a warning for a partial loss or a
-        leak; evidence: the thruster, the fault's size (fraction of nominal thrust), the GLR or
-        CUSUM statistic and the type's code (0 stuck open, 1 leak, 2 stuck closed, 3 partial loss)."""
+        ``bsc/<robot>/alerts``: critical for a stuck valve, a warning for a partial loss, a
+        leak or a misalignment; evidence: the thruster, the fault's size (fraction of nominal
+        thrust; a misalignment's tilt, degrees), the GLR or CUSUM statistic and the type's code
+        (0 stuck open, 1 leak, 2 stuck closed, 3 partial loss, 5 misalignment)."""
         from gateway.efforts import Alert
         from gateway.estimator import fdi
 
@@ -255,7 +256,7 @@ class Pipeline:
             stuck = fault in ("stuck open", "stuck closed")
             alert = Alert(self.name, "thruster", f"thruster{j}", fdi.RULE, "critical" if stuck else "warning",
                           "raised", a["detected_t_ns"], a["t_ns"],
-                          f"thruster {j}: {fault} (size {a['theta']:.2f} of nominal thrust)",
+                          f"thruster {j}: {fault} ({fdi.size_text(fault, a['theta'])})",
                           (("thruster", float(j)), ("theta", a["theta"]), ("stat", a["stat"]),
                            ("type", float(fdi.TYPES.index(fault)))))
             self.emit(keys.alerts(self.name), alert)

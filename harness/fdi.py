@@ -1,7 +1,8 @@
 """Simulated thruster faults for the fault detector: one recorded session per case, judged on truth.
 
 A case is a scenario (``capture`` or ``three_arm``), a seed, and at most one thruster fault
-(``stuck_open``, ``stuck_closed`` or ``loss`` of a fraction of the thrust) with its onset. Each
+(``stuck_open``, ``stuck_closed``, ``loss`` of a fraction of the thrust, ``leak``, or
+``misalign``: its thrust tilted by ``angle_deg``) with its onset. Each
 session is made by the real path (simulator -> sensor firmware -> CAN frames -> drivers and
 estimator, raw frames recorded, as :mod:`harness.series` makes its sessions), then
 ``gateway.analysis.fdi.analyze_thrusters`` reads the log as ``bsc analyze`` would, and
@@ -23,15 +24,17 @@ from pathlib import Path
 
 from harness.series import _record_session
 
-FAULTS = ("stuck_open", "stuck_closed", "loss", "leak")
-EXPECTED = {"stuck_open": "stuck open", "stuck_closed": "stuck closed", "loss": "partial loss", "leak": "leak"}
+FAULTS = ("stuck_open", "stuck_closed", "loss", "leak", "misalign")
+EXPECTED = {"stuck_open": "stuck open", "stuck_closed": "stuck closed", "loss": "partial loss", "leak": "leak",
+            "misalign": "misalignment"}
 
 
 @dataclass(frozen=True)
 class FaultCase:
     """One session: ``fault`` None for a healthy one; ``factor``: the thrust left by a loss, the
     fraction of its thrust a leaking valve delivers while closed; ``end_s``: a stuck valve follows
-    its command again from then on (None: it stays stuck)."""
+    its command again from then on (None: it stays stuck); ``angle_deg``: a misalignment's tilt of
+    the thruster's direction (``[[degrade]] thruster_misalign``)."""
 
     scenario: str = "capture"
     seed: int = 7
@@ -41,12 +44,14 @@ class FaultCase:
     onset_s: float = 3.0
     factor: float = 1.0
     end_s: float | None = None
+    angle_deg: float = 0.0
 
     @property
     def name(self) -> str:
         if self.fault is None:
             return f"{self.scenario}-s{self.seed}-healthy"
-        size = {"loss": f"-{1 - self.factor:.2f}", "leak": f"-{self.factor:.2f}"}.get(self.fault, "")
+        size = {"loss": f"-{1 - self.factor:.2f}", "leak": f"-{self.factor:.2f}",
+                "misalign": f"-{self.angle_deg:g}deg"}.get(self.fault, "")
         end = f"-to{self.end_s:.2f}" if self.end_s is not None else ""
         return f"{self.scenario}-s{self.seed}-t{self.thruster}-{self.fault}{size}-at{self.onset_s:.2f}{end}"
 
@@ -63,6 +68,9 @@ class FaultCase:
         if self.fault in ("loss", "leak"):
             text += (f'\n[[degrade]]\nkind = "thruster_{self.fault}"\nthruster = {self.thruster}\n'
                      f'onset_s = {float(self.onset_s)!r}\nfactor = {float(self.factor)!r}\n')
+        elif self.fault == "misalign":
+            text += (f'\n[[degrade]]\nkind = "thruster_misalign"\nthruster = {self.thruster}\n'
+                     f'onset_s = {float(self.onset_s)!r}\nangle_deg = {float(self.angle_deg)!r}\n')
         elif self.fault is not None:
             state = "open" if self.fault == "stuck_open" else "closed"
             text += (f'\n[[degrade]]\nkind = "thruster_stuck"\nthruster = {self.thruster}\n'
@@ -104,7 +112,7 @@ class Verdict:
     alarms: list[dict]
     named: bool = False            # the right thruster and type
     delay_s: float = float("nan")  # onset -> the right alarm, s (nan: none)
-    theta: float = float("nan")    # its size, fraction of nominal thrust
+    theta: float = float("nan")    # its size, fraction of nominal thrust (a misalignment: degrees)
     theta_true: float = float("nan")
     commanded_duty: float = float("nan")   # the thruster's commanded open fraction, 0.5 s from the onset
     commanded_after: float = float("nan")  # ... from the onset to the session's end
@@ -151,7 +159,8 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
            else is_open & ~after)
     thrust = tr["thrust"][sel, j].mean() if sel.any() else float("nan")
     g = thrust / _max_thrust(case)
-    v.theta_true = (1 - case.factor) * g if case.fault == "loss" else g
+    v.theta_true = ((1 - case.factor) * g if case.fault == "loss" else case.angle_deg if case.fault == "misalign"
+                    else g)
     on = int(case.onset_s * 1e9)
     after = (res.valve_t_ns >= on) & (res.valve_t_ns < on + 500_000_000)
     if after.any():
@@ -252,11 +261,13 @@ def main(argv=None) -> int:
     p.add_argument("--factor", type=float, default=0.7,
                    help="thrust left by a loss; with --fault leak, the fraction of its thrust a closed valve gives")
     p.add_argument("--end", type=float, help="a stuck valve follows its command again from this time, s")
+    p.add_argument("--angle", type=float, default=10.0, help="with --fault misalign, the tilt of the thruster, degrees")
     p.add_argument("--out", type=Path, required=True, help="the session's .mcap")
     a = p.parse_args(argv)
     factor = a.factor if a.fault in ("loss", "leak") else 1.0
     case = FaultCase(a.scenario, a.seed, a.duration, a.thruster, a.fault, a.onset, factor,
-                     a.end if a.fault in ("stuck_open", "stuck_closed") else None)
+                     a.end if a.fault in ("stuck_open", "stuck_closed") else None,
+                     a.angle if a.fault == "misalign" else 0.0)
     record(case, a.out)
     print(json.dumps(judge(case, a.out).to_json(), indent=1))
     return 0

@@ -44,12 +44,13 @@ from .dynamics import DivergenceError, Dynamics, Friction
 from .errors import SimulatorError
 from .scenario import Scenario
 from .sensors import Encoders, ForceTorqueSensors, Imu, cross_rows
-from .thrusters import PWPFM, Allocator, Layout, ThrusterErrors
+from .thrusters import PWPFM, Allocator, Layout, ThrusterErrors, tilted
 from .truth import Trace
 
 DT_S = 1e-3          # physics, F/T and encoder rate: 1 kHz
 DT_NS = 1_000_000
-THRUSTER_FAULTS = ("thruster_loss", "thruster_stuck", "thruster_leak")   # the [[degrade]] kinds of the thrusters
+# the [[degrade]] kinds of the thrusters
+THRUSTER_FAULTS = ("thruster_loss", "thruster_stuck", "thruster_leak", "thruster_misalign")
 
 
 class DriveCommandError(SimulatorError, ValueError):
@@ -217,6 +218,9 @@ class Simulation:
             if d["kind"] == "thruster_leak" and not 0.0 <= d["factor"] <= 1.0:
                 raise ValueError(f"degrade: thruster_leak factor {d['factor']:g} outside 0..1 (a fraction of the "
                                  "valve's thrust while it is closed)")
+            if d["kind"] == "thruster_misalign" and not 0.0 <= d["angle_deg"] <= 90.0:
+                raise ValueError(f"degrade: thruster_misalign angle_deg {d['angle_deg']:g} outside 0..90 (the tilt "
+                                 "of the thruster's direction, degrees)")
 
     # Every degradation is a function of time: from its onset on, it sets its value at every step
     # (in list order, so a later entry for the same item wins).
@@ -252,10 +256,33 @@ class Simulation:
                 factor[on, d["thruster"]] = d["factor"]
             elif d["kind"] == "thruster_leak":
                 leak[on, d["thruster"]] = d["factor"]                          # type: ignore[index]
-            else:
+            elif d["kind"] == "thruster_stuck":
                 stuck[on, d["thruster"]] = {"open": 1, "closed": -1, "free": 0}[d["state"]]   # free: as commanded again
         self.thr_err.degrade, self.thr_err.stuck = factor[-1].copy(), stuck[-1].copy()
         return factor, stuck, leak
+
+    def _misalign_wrench(self, t: np.ndarray, thrust: np.ndarray) -> np.ndarray | None:
+        """What tilted thrusters add to the steps' wrench (len(t), 6), or None when none is tilted:
+        from its onset, a ``thruster_misalign`` thruster's thrust along its actual direction tilted
+        by ``angle_deg`` (:func:`.thrusters.tilted`) instead of along its actual direction (a later
+        entry for the same thruster wins; 0 degrees ends a tilt)."""
+        kinds = [d for d in self._degrade if d["kind"] == "thruster_misalign"]
+        if not kinds:
+            return None
+        err = self.thr_err
+        out = np.zeros((len(t), 6))
+        col = {}
+        for d in kinds:
+            j = d["thruster"]
+            on = t >= d["onset_s"]
+            if j not in col:
+                col[j] = np.zeros((len(t), 6))
+            new = tilted(err.dir_actual[j], d["angle_deg"])
+            pos = self.layout.pos_m[j]
+            col[j][on] = np.concatenate([new, np.cross(pos, new)]) - err.B_actual[:, j]
+        for j, dcol in col.items():
+            out += thrust[:, j:j + 1] * dcol
+        return out
 
     def _ft_drift(self, t: np.ndarray) -> np.ndarray | None:
         """Per-step F/T bias drift (len(t), p, 6), or None when there is none."""
@@ -334,6 +361,8 @@ class Simulation:
             factor, stuck, leak = self._thruster_degradations(np.arange(k, k + be) * DT_S)
         valves, thrust = self.thr_err.run(commanded, factor, stuck, leak)
         self._wrench_chunk = thrust.dot(self.thr_err.B_actual.T)
+        if self._thr_degrade and (tilt := self._misalign_wrench(np.arange(k, k + be) * DT_S, thrust)) is not None:
+            self._wrench_chunk += tilt
         A["valves"][hold] = valves[:n]
         A["thrust"][hold] = thrust[:n]
         A["thr_act"][hold] = self._wrench_chunk[:n]
@@ -350,6 +379,8 @@ class Simulation:
             factor, stuck, leak = self._thruster_degradations(np.array([k * DT_S]))
         valves, thrust = self.thr_err.run(commanded[None, :], factor, stuck, leak)
         wrench = thrust[0].dot(self.thr_err.B_actual.T)
+        if self._thr_degrade and (tilt := self._misalign_wrench(np.array([k * DT_S]), thrust)) is not None:
+            wrench = wrench + tilt[0]
         A = self.trace.arrays
         A["valves"][k], A["thrust"][k], A["thr_act"][k] = valves[0], thrust[0], wrench
         return wrench

@@ -23,6 +23,7 @@ DEGRADE_KINDS = {
     "thruster_loss": {"thruster": int, "onset_s": float, "factor": float},
     "thruster_stuck": {"thruster": int, "onset_s": float, "state": str},
     "thruster_leak": {"thruster": int, "onset_s": float, "factor": float},
+    "thruster_misalign": {"thruster": int, "onset_s": float, "angle_deg": float},
     "ft_bias_drift": {"arm": str, "onset_s": float, "force_n_per_s": list, "torque_nm_per_s": list},
 }
 # keys whose value is a free-form table (not checked against the default)

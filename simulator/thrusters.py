@@ -239,6 +239,18 @@ class ThrusterErrors:
         return f
 
 
+def tilted(direction: np.ndarray, angle_deg: float) -> np.ndarray:
+    """A thruster's unit ``direction`` tilted by ``angle_deg`` towards the body axis most
+    perpendicular to it (the first of x, y, z on a tie): the nozzle knocked askew, a
+    ``[[degrade]] thruster_misalign``. The tilt's plane is fixed by the direction alone, so a
+    scenario states it with one number and a test knows where the thrust went."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    e = np.eye(3)[int(np.argmin(np.abs(d)))]
+    k = np.cross(d, e)
+    return _rotvec(np.radians(angle_deg) * k / np.linalg.norm(k)) @ d
+
+
 def _rotvec(a: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(a))
     if th < 1e-15:

@@ -325,14 +325,15 @@ THRUSTER_FAULT_RULE = "thruster-fault"
 
 def session_findings(sessions: list[SessionFeatures]) -> list[Finding]:
     """Thruster faults found within each session (no baseline): one raised finding each, a stuck
-    valve critical, a partial loss or a leak a warning."""
+    valve critical, a partial loss, a leak or a misalignment a warning."""
+    from gateway.estimator.fdi import size_text
+
     out = []
     for k, s in enumerate(sessions):
         for a in s.thruster_faults:
             sev = "critical" if a["fault"] in ("stuck open", "stuck closed") else "warning"
             msg = (f"thruster {a['thruster']}: {a['fault']}, named {a['t_s']:.2f} s into the session "
-                   + (f"({a['theta']:.0%} of nominal thrust)" if a["fault"] in ("leak", "partial loss")
-                      else f"(size {a['theta']:.2f} of nominal thrust)"))
+                   f"({size_text(a['fault'], a['theta'])})")
             ev = {key: a[key] for key in ("fault", "t_s", "detected_t_s", "theta", "stat", "window", "efficiency")}
             out.append(Finding(s.name, k, "thruster", a["target"], THRUSTER_FAULT_RULE, sev, "raised", s.name, msg, ev))
     return out

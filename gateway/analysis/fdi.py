@@ -28,8 +28,9 @@ class NoRawFrames(AnalysisError):
 class ThrusterAlarm:
     """One thruster fault found in a session. ``t_s``: when it was raised, s from the session's
     first epoch; ``theta``: the fault's size as a fraction of nominal thrust (the leak or the
-    lost part); ``stat``: the GLR statistic when raised; ``window``: ``short`` (gross faults) or
-    ``long``; ``efficiency``: the thruster's learned efficiency at the end of the session;
+    lost part; a misalignment's tilt in degrees); ``stat``: the GLR statistic when raised;
+    ``window``: ``short`` (gross faults) or ``long``; ``efficiency``: the thruster's learned
+    efficiency at the end of the session;
     ``detected_t_s``: when the detector first named the thruster (the type then takes
     :attr:`FdiSettings.confirm_short` or ``confirm_long`` more updates)."""
 
@@ -48,8 +49,9 @@ class ThrusterAlarm:
         return f"thruster{self.thruster}"
 
     def message(self) -> str:
-        size = (f"{self.theta:.0%} of nominal thrust" if self.fault in ("leak", "partial loss")
-                else f"theta {self.theta:.2f}")
+        from gateway.estimator.fdi import size_text
+
+        size = size_text(self.fault, self.theta)
         return (f"thruster {self.thruster} {self.fault}, named {self.t_s:.2f} s into the session "
                 f"({size}; GLR {self.stat:.0f})")
 
@@ -207,7 +209,7 @@ def detect(stream: dict, core, layout, settings=None, max_events: int = 64):
     settings = settings or fdi.FdiSettings()
     st = fdi.new_state(layout.n, max_events)
     cfg = settings.config(layout.n, core.cfg[4] * 1e-9)
-    Wnom = np.ascontiguousarray(kf.W.copy())
+    Wnom = fdi.signatures(layout, kf.W)
     Ha = np.ascontiguousarray(kf.state[3][tk._HA:tk._HA + 18])
     tap = np.zeros(tk.tap_size(layout.n))
     out = np.zeros((len(stream["kind"]), 4))

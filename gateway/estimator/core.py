@@ -774,10 +774,11 @@ class EstimatorCore:
         n_thr = self.layout.n
         self.valve_dtype = valve_dtype(kf.n, len(self.flag_names))
         if s.fdi is not None:                 # the fault detector's state and constants (gateway/estimator/fdi.py)
-            fdi_arrays = [fd.new_state(n_thr), s.fdi.config(n_thr, imu_period * 1e-9), kf.W.copy(),
+            fdi_arrays = [fd.new_state(n_thr), s.fdi.config(n_thr, imu_period * 1e-9),
+                          fd.signatures(self.layout, kf.W),
                           kf.state[3][tk._HA:tk._HA + 18].copy(), np.zeros(tk.tap_size(n_thr))]
         else:
-            fdi_arrays = [np.zeros(1), np.zeros(1), np.zeros((1, 6)), np.zeros(1), np.zeros(1)]
+            fdi_arrays = [np.zeros(1), np.zeros(1), np.zeros((1, fd.SIG_COLS)), np.zeros(1), np.zeros(1)]
         packed = ViewLayout([
             si, self.cfg, np.zeros((cap, 4), dtype=np.int64), np.zeros((cap, 3 + 3 * p + 3 * nj), dtype=np.int64),
             np.zeros((nj1, 2), dtype=np.int64),                                       # 0-4

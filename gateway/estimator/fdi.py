@@ -13,6 +13,10 @@ rows (``W_j`` moment), times a known time profile:
 - ``loss`` (stuck closed, partial loss): no or less thrust with the valve open,
   ``g = -vbar_j Ha W_j``, ``-vt_j W_j^tau``; ``theta`` = the fraction lost (1: stuck closed).
 
+- ``tilt`` (a misalignment change: the thrust turned off its direction), two angles ``phi``
+  across the nominal direction ``d``: ``g = vbar_j Ha T_j phi`` and ``vt_j T_j^tau phi``, ``T_j``
+  the wrench of a tilt by one radian, ``F [u; p x u]`` for ``u`` across ``d`` (:func:`signatures`).
+
 ``vbar_j`` is valve j's open fraction over the IMU interval and ``vt_j`` its weight in the gyro
 difference (the rows of H). For each of these ``2 n`` hypotheses a generalised likelihood ratio
 over an exponentially forgetting window, with whitened ``g`` and ``e`` (``L^-1``, ``S = L L^T``)::
@@ -20,7 +24,8 @@ over an exponentially forgetting window, with whitened ``g`` and ``e`` (``L^-1``
     A = sum lambda^(k-u) g_u^T S_u^-1 g_u,   B = sum lambda^(k-u) g_u^T S_u^-1 e_u
     theta = B / A,   T = B^2 / A  (theta > 0, else 0)
 
-``T`` is chi-squared with one degree of freedom while healthy. Two windows: a short one for the
+``T`` is chi-squared with one degree of freedom while healthy (a tilt: ``A`` 2 x 2, ``B`` 2-vector,
+``phi = A^-1 B``, ``T = B^T A^-1 B`` with two). Two windows: a short one for the
 gross faults (a stuck valve, 0.1 s) and a long one for partial losses and leaks (4 s). The
 hypothesis with the largest ``T`` above its window's threshold for ``hold`` updates in a row is
 raised: it names the thruster (the direction and moment arm of ``W_j`` and the valve's time
@@ -49,39 +54,45 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robot_description.thrusters import ThrusterLayout
+
 from . import thruster_kernel as tk
 from .thruster_kernel import F64, I64
 
 from .jitopts import jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 RULE = "thruster-fault"                # the rule name of its alerts (live and bsc analyze)
-OPEN, LOSS = 0, 1                      # hypothesis families
-FAMILIES = ("open", "loss")
-STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS, CLEARED = range(5)
-TYPES = ("stuck open", "leak", "stuck closed", "partial loss", "cleared")
-TYPE_KEYS = ("stuck_open", "leak", "stuck_closed", "partial_loss", "cleared")
+OPEN, LOSS, TILT = 0, 1, 2             # hypothesis families
+FAMILIES = ("open", "loss", "tilt")
+STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS, CLEARED, MISALIGNMENT = range(6)
+TYPES = ("stuck open", "leak", "stuck closed", "partial loss", "cleared", "misalignment")
+TYPE_KEYS = ("stuck_open", "leak", "stuck_closed", "partial_loss", "cleared", "misalignment")
 OPEN_THETA = 0.5                       # a leak of at least this fraction of nominal thrust: stuck open
 CLOSED_THETA = 0.75                    # a loss of at least this fraction: stuck closed
 SHORT, LONG = 0, 1
 
 # the detector's constants (float64 array, :meth:`FdiSettings.config`)
 (_C_LAM, _C_THETA1, _C_H, _C_THETA_MIN, _C_HOLD, _C_SUSPECT, _C_CONFIRM, _C_WARMUP,
- _C_N, _C_GATE, _C_NOISE_ALPHA) = 0, 1, 2, 4, 6, 8, 10, 12, 13, 14, 15
-_NCFG = 16
-# its state (float64 array): a header; per hypothesis the short window's A and B, the CUSUM, its
-# A and B since it last left zero, and whether it was raised; the faults (:data:`_NF` numbers
-# each); the alarm rows (:data:`EVENT_FIELDS`)
+ _C_N, _C_GATE, _C_NOISE_ALPHA, _C_LAM_TILT, _C_TILT_MIN) = 0, 1, 2, 4, 6, 8, 10, 12, 13, 14, 15, 16, 17
+_NCFG = 18
+# its state (float64 array): a header; per hypothesis of the open and loss families (h = 2 n) the
+# short window's A and B, the CUSUM, its A and B since it last left zero, and whether it was
+# raised; per thruster (tilt hypothesis h + j) whether its tilt was raised (right after the open and
+# loss families' flags: one flag per hypothesis, h + n in a row) and its window's 2 x 2 A (a11, a12,
+# a22) and B (b1, b2); the faults (:data:`_NF` numbers each); the alarm rows (:data:`EVENT_FIELDS`)
 _S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_CLEARED, _S_NOISE, _S_HDR = (
     0, 1, 2, 4, 6, 7, 8, 9, 10, 11, 12)
 _A, _B, _CU, _CA, _CB, _RAISED = range(6)        # blocks of h = 2 n numbers after the header
+_T11, _T12, _T22, _T1, _T2 = 1, 2, 3, 4, 5        # blocks of n numbers after the tilt flags
 MAX_FAULTS = 4
 # a fault: its hypothesis, A and B since it was raised, the size that raised it, updates since,
 # when it was detected (ns), the detector (SHORT, LONG), its statistic, its stage, its type once
 # confirmed; for a fault in the filter the recovery test's A and B (a stuck valve: short window; a
-# partial loss: since its CUSUM last left zero), its run, when the run began (ns), and the CUSUM
+# partial loss: since its CUSUM last left zero), its run, when the run began (ns), and the CUSUM;
+# a tilt's 2 x 2 A and B since it was raised, and the second angle of the size that raised it
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
- _F_RT, _F_RC) = range(15)
-_NF = 15
+ _F_RT, _F_RC, _F_T11, _F_T12, _F_T22, _F_T1, _F_T2, _F_THETA0B) = range(21)
+_NF = 21
 CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR, DISMISSED = 0, 1, 2, 3, 4, 5, 6
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
@@ -106,6 +117,7 @@ covariance and every statistic the detectors whiten by it."""
 NOISE_REF = 2.0                        # the noise level the thresholds and the gate were set at (healthy: 1.8)
 NOISE_CLIP = 4.0                       # an update adds at most this multiple of the current level
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
+TILT_MARGIN = 4.0                      # a tilt takes over a long candidate by this much log-likelihood ratio
 EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
 _NEV = len(EVENT_FIELDS)
 
@@ -127,7 +139,13 @@ class FdiSettings:
     GLR) or above 3/4 of ``h_long`` (CUSUM) the filter stops learning (a fault must not be learnt
     into the healthy model while it is being decided); ``warmup_s``: no alarm while the filter
     converges from its prior. Otherwise the filter learns from an IMU sample only when its
-    normalised innovation squared is at most :data:`GATE`."""
+    normalised innovation squared is at most :data:`GATE`.
+
+    Misalignment changes (a thruster's direction tilted): per thruster a GLR of the tilt, two
+    angles across its nominal direction, over an exponentially forgetting window of ``tilt_s``;
+    its log-likelihood ratio (half the statistic, chi-squared with 2 degrees of freedom while
+    healthy) competes with the CUSUMs of the long detector, under its threshold, hold and
+    confirmation, for a tilt of at least ``tilt_min_deg``."""
 
     short_s: float = 0.1
     h_short: float = 200.0
@@ -141,6 +159,8 @@ class FdiSettings:
     confirm_long: int = 250
     suspect: float = 40.0
     warmup_s: float = 0.2
+    tilt_s: float = 0.5
+    tilt_min_deg: float = 3.0
 
     def config(self, n: int, imu_period_s: float) -> np.ndarray:
         c = np.zeros(_NCFG)
@@ -155,13 +175,47 @@ class FdiSettings:
         c[_C_N] = n
         c[_C_GATE] = GATE
         c[_C_NOISE_ALPHA] = imu_period_s / NOISE_TAU_S
+        c[_C_LAM_TILT] = math.exp(-imu_period_s / self.tilt_s)
+        c[_C_TILT_MIN] = math.radians(self.tilt_min_deg)
         return c
 
 
+@_jit
+def _fault_base(n: int) -> int:
+    """Where the fault records begin in the state of ``n`` thrusters (:func:`_offsets`)."""
+    return _S_HDR + 6 * 2 * n + 11 * n
+
+
 def _offsets(n: int) -> tuple[int, int, int]:
-    h = 2 * n
-    faults = _S_HDR + 6 * h
+    faults = int(_fault_base(n))
     return _S_HDR, faults, faults + _NF * MAX_FAULTS
+
+
+SIG_COLS = 18
+"""Columns of the detector's per-thruster signature table (:func:`signatures`)."""
+
+
+def signatures(layout: ThrusterLayout, W: np.ndarray) -> np.ndarray:
+    """The detector's table of what each thruster's faults look like, ``(n, 18)``: its nominal
+    wrench ``W[j]`` (the filter's prior, ``[force; moment about C]``), then what tilting its thrust
+    by one radian adds, towards ``u1`` (the body axis most perpendicular to its direction, made
+    perpendicular) and towards ``u2 = d x u1``: ``F [u_k; p x u_k]`` (``F`` its nominal thrust,
+    ``p`` its position). The position along the thrust axis changes the moment of a tilt and
+    cannot be read off ``W``: hence the layout."""
+    n = layout.n
+    out = np.zeros((n, SIG_COLS))
+    out[:, :6] = W
+    for j in range(n):
+        d = np.asarray(layout.dir[j], dtype=float)
+        d = d / math.sqrt(float(d @ d))
+        e = np.eye(3)[int(np.argmin(np.abs(d)))]
+        u1 = e - (e @ d) * d
+        u1 /= math.sqrt(float(u1 @ u1))
+        u2 = np.cross(d, u1)
+        for k, u in enumerate((u1, u2)):
+            f = float(layout.max_n[j]) * u
+            out[j, 6 + 6 * k:12 + 6 * k] = np.concatenate([f, np.cross(layout.pos_m[j], f)])
+    return np.ascontiguousarray(out)
 
 
 def state_size(n: int, max_events: int) -> int:
@@ -218,6 +272,50 @@ def _project(Wnom: F64, Ha: F64, tap: F64, L: F64, n: int, m: int, j: int, fam: 
         a += gw[r] * gw[r]
         b += gw[r] * ew[r]
     return a, b
+
+
+@_jit
+def _tilt_project(Wnom: F64, Ha: F64, tap: F64, L: F64, n: int, m: int, j: int, ew: F64, g: F64, gw: F64,
+                  gw2: F64) -> tuple[float, float, float, float, float]:
+    """Thruster ``j``'s two whitened tilt signatures (:func:`signatures`' columns 6-17, seen while
+    the valve is open as the filter takes it) into ``gw`` and ``gw2``, and their sums with each
+    other and with the whitened innovation: ``(a11, a12, a22, b1, b2)``."""
+    vbar = tap[tk.TAP_VALVES + j]
+    vt = tap[tk.TAP_VALVES + n + j]
+    for k in range(2):
+        c0 = 6 + 6 * k
+        for r in range(3):
+            acc = 0.0
+            for q in range(6):
+                acc += Ha[6 * r + q] * Wnom[j, c0 + q]
+            g[r] = vbar * acc
+        for r in range(3):
+            g[3 + r] = vt * Wnom[j, c0 + 3 + r] if m == 6 else 0.0
+        _whiten(L, m, g, gw if k == 0 else gw2)
+    a11 = 0.0
+    a12 = 0.0
+    a22 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for r in range(m):
+        a11 += gw[r] * gw[r]
+        a12 += gw[r] * gw2[r]
+        a22 += gw2[r] * gw2[r]
+        b1 += gw[r] * ew[r]
+        b2 += gw2[r] * ew[r]
+    return a11, a12, a22, b1, b2
+
+
+@_jit
+def _solve2(a11: float, a12: float, a22: float, b1: float, b2: float) -> tuple[float, float, float]:
+    """``phi = A^-1 b`` of a symmetric 2 x 2 ``A`` and the statistic ``b^T A^-1 b`` (zeros when
+    ``A`` is singular)."""
+    det = a11 * a22 - a12 * a12
+    if not det > 1e-12 * (a11 * a22 + 1e-300):
+        return 0.0, 0.0, 0.0
+    p1 = (a22 * b1 - a12 * b2) / det
+    p2 = (a11 * b2 - a12 * b1) / det
+    return p1, p2, p1 * b1 + p2 * b2
 
 
 @_jit
@@ -287,6 +385,9 @@ def _restart(st: F64, h_all: int) -> None:
     """Both detectors from zero (the filter's model of the faults changed)."""
     for k in range(5 * h_all):
         st[_S_HDR + k] = 0.0
+    n = h_all // 2
+    for k in range(n, 6 * n):                     # the tilts' sums (not their flags)
+        st[_S_HDR + 6 * h_all + k] = 0.0
     for w in range(2):
         st[_S_BEST + w] = -1.0
         st[_S_RUN + w] = 0.0
@@ -309,7 +410,9 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         return float(st[_S_LEARN])
     n = int(cfg[_C_N])
     h_all = 2 * n
-    fbase = _S_HDR + 6 * h_all
+    tb = _S_HDR + 6 * h_all                   # the tilts' block: flags, then their sums
+    tr = tb + 6 * n                           # the tilts' sums since a long candidate was raised
+    fbase = tr + 5 * n
     ev0 = fbase + _NF * MAX_FAULTS
     m = int(tap[tk.TAP_ROWS])
     S = tap[tk.TAP_S:tk.TAP_S + 36].reshape((6, 6))      # row-major, stride 6
@@ -326,6 +429,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     ew = np.zeros(6)
     g = np.zeros(6)
     gw = np.zeros(6)
+    gw2 = np.zeros(6)
     _whiten(L, m, e, ew)
     # faults the filter does not model: their sizes from the raw innovation, then out of it
     nf = int(st[_S_NFAULTS])
@@ -336,6 +440,23 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR and not leak_in_filter:
             continue
         hyp = int(st[o + _F_HYP])
+        if hyp < h_all and st[o + _F_WIN] == LONG and st[o + _F_STAGE] == CONFIRMING:
+            # every thruster's tilt on the same innovation, since the candidate was raised
+            for j in range(n):
+                a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, j, ew, g, gw, gw2)
+                st[tr + j] += a11
+                st[tr + n + j] += a12
+                st[tr + 2 * n + j] += a22
+                st[tr + 3 * n + j] += b1
+                st[tr + 4 * n + j] += b2
+        if hyp >= h_all:                          # a tilt: its 2 x 2 sums
+            a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, hyp - h_all, ew, g, gw, gw2)
+            st[o + _F_T11] += a11
+            st[o + _F_T12] += a12
+            st[o + _F_T22] += a22
+            st[o + _F_T1] += b1
+            st[o + _F_T2] += b2
+            continue
         a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
         if leak_in_filter:
             # the filter's measurement is corrected for the leak at its current size: its size
@@ -348,17 +469,66 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         if st[o + _F_STAGE] != CONFIRMING and st[o + _F_STAGE] != IN_DETECTOR:
             continue
         hyp = int(st[o + _F_HYP])
-        th = _theta(st, o)
-        _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
-        _whiten(L, m, g, gw)
-        for r in range(m):
-            ew[r] -= th * gw[r]
+        if hyp >= h_all:
+            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
+            if st[o + _F_STAGE] == CONFIRMING and st[o + _F_T11] <= 0.0:
+                p1 = st[o + _F_THETA0]            # the window's estimate until its own has data
+                p2 = st[o + _F_THETA0B]
+            _tilt_project(Wnom, Ha, tap, L, n, m, hyp - h_all, ew, g, gw, gw2)
+            for r in range(m):
+                ew[r] -= p1 * gw[r] + p2 * gw2[r]
+        else:
+            th = _theta(st, o)
+            _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
+            _whiten(L, m, g, gw)
+            for r in range(m):
+                ew[r] -= th * gw[r]
         if st[o + _F_STAGE] != CONFIRMING:
             continue
         st[o + _F_COUNT] += 1.0
         confirm = cfg[_C_CONFIRM + int(st[o + _F_WIN])]
         if st[o + _F_COUNT] < confirm:
             confirming = True
+            continue
+        if hyp < h_all and st[o + _F_WIN] == LONG:
+            # which explains the same innovation better since it was raised: the candidate, or a
+            # thruster's tilt (a tilt can look like another thruster's leak while its valve is
+            # open, but not while it is closed)? By log-likelihood ratio, the tilt's by a margin
+            # and above the long detector's threshold
+            own = 0.5 * st[o + _F_B] * st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 and st[o + _F_B] > 0.0 else 0.0
+            best_j = -1
+            best_llr = max(own + TILT_MARGIN, cfg[_C_H + LONG])       # and above the alarm's threshold
+            for j in range(n):
+                p1, p2, T = _solve2(st[tr + j], st[tr + n + j], st[tr + 2 * n + j], st[tr + 3 * n + j],
+                                    st[tr + 4 * n + j])
+                if 0.5 * T > best_llr and math.sqrt(p1 * p1 + p2 * p2) >= cfg[_C_TILT_MIN]:
+                    best_j = j
+                    best_llr = 0.5 * T
+            if best_j >= 0:
+                st[_S_HDR + _RAISED * h_all + hyp] = 0.0
+                hyp = h_all + best_j
+                st[o + _F_HYP] = hyp
+                st[o + _F_T11] = st[tr + best_j]
+                st[o + _F_T12] = st[tr + n + best_j]
+                st[o + _F_T22] = st[tr + 2 * n + best_j]
+                st[o + _F_T1] = st[tr + 3 * n + best_j]
+                st[o + _F_T2] = st[tr + 4 * n + best_j]
+                st[o + _F_STAT] = best_llr
+        if hyp >= h_all:
+            # a tilt, measured on its own since raised: below the smallest tilt alarmed it is
+            # dismissed (as below), else a misalignment, its angle in degrees, for the filter
+            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
+            ang = math.sqrt(p1 * p1 + p2 * p2)
+            st[_S_HDR + _RAISED * h_all + hyp] = 0.0 if ang < cfg[_C_TILT_MIN] else 1.0
+            if ang < cfg[_C_TILT_MIN]:
+                st[o + _F_STAGE] = DISMISSED
+                st[_S_CLEARED] += 1.0
+            else:
+                st[o + _F_TYPE] = MISALIGNMENT
+                _event(st, ev0, float(t_ns), hyp - h_all, MISALIGNMENT, math.degrees(ang), st[o + _F_STAT],
+                       st[o + _F_WIN], st[o + _F_T])
+                st[o + _F_STAGE] = TO_FILTER
+            _restart(st, h_all)
             continue
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
         # the type is a size test: while the size is within 3 of its standard errors
@@ -499,6 +669,14 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 st[_S_HDR + _CU * h_all + k] = cu
                 st[_S_HDR + _CA * h_all + k] += a
                 st[_S_HDR + _CB * h_all + k] += b
+    lt = cfg[_C_LAM_TILT]
+    for j in range(n):
+        a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, j, ew, g, gw, gw2)
+        st[tb + _T11 * n + j] = lt * st[tb + _T11 * n + j] + a11
+        st[tb + _T12 * n + j] = lt * st[tb + _T12 * n + j] + a12
+        st[tb + _T22 * n + j] = lt * st[tb + _T22 * n + j] + a22
+        st[tb + _T1 * n + j] = lt * st[tb + _T1 * n + j] + b1
+        st[tb + _T2 * n + j] = lt * st[tb + _T2 * n + j] + b2
     if upd <= cfg[_C_WARMUP]:
         st[_S_LEARN] = math.inf
         return math.inf
@@ -507,13 +685,25 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     for w in range(2):
         best, best_t = _best(st, h_all, w)
         theta = _stats(st, h_all, w, best)[1] if best >= 0 else 0.0
+        theta_min = cfg[_C_THETA_MIN + w]
+        phi2 = 0.0
+        if w == LONG:
+            # the tilts compete with the CUSUMs by their log-likelihood ratio, half the GLR
+            for j in range(n):
+                p1, p2, T = _solve2(st[tb + _T11 * n + j], st[tb + _T12 * n + j], st[tb + _T22 * n + j],
+                                    st[tb + _T1 * n + j], st[tb + _T2 * n + j])
+                if 0.5 * T > best_t:
+                    best, best_t, theta, phi2 = h_all + j, 0.5 * T, p1, p2
+            if best >= h_all:
+                theta_min = cfg[_C_TILT_MIN]
         if best_t > cfg[_C_SUSPECT + w]:
             suspect = True
             if w == SHORT and theta >= cfg[_C_THETA_MIN]:
                 gross = True              # a gross fault is the short detector's to name: its GLR fits
         if w == LONG and gross:
             continue
-        if best < 0 or best_t <= cfg[_C_H + w] or theta < cfg[_C_THETA_MIN + w]:
+        size = math.sqrt(theta * theta + phi2 * phi2) if best >= h_all else theta
+        if best < 0 or best_t <= cfg[_C_H + w] or size < theta_min:
             st[_S_BEST + w] = -1.0
             st[_S_RUN + w] = 0.0
             continue
@@ -547,6 +737,14 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_RRUN] = 0.0
         st[o + _F_RT] = 0.0
         st[o + _F_RC] = 0.0
+        st[o + _F_T11] = 0.0
+        st[o + _F_T12] = 0.0
+        st[o + _F_T22] = 0.0
+        st[o + _F_T1] = 0.0
+        st[o + _F_T2] = 0.0
+        st[o + _F_THETA0B] = phi2
+        for k in range(5 * n):
+            st[tr + k] = 0.0
         if slot == nf:
             nf += 1
             st[_S_NFAULTS] = nf
@@ -571,7 +769,7 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     two were one sum while it was stuck open, and it was not learnt while stuck closed. A partial
     loss just cleared: the lost part back on the valve's wrench, and room to refine it."""
     n = int(cfg[_C_N])
-    fbase = _S_HDR + 6 * 2 * n
+    fbase = _fault_base(n)
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
         if st[o + _F_STAGE] == TO_CLEAR and st[o + _F_TYPE] == PARTIAL_LOSS:
@@ -598,6 +796,28 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             st[o + _F_STAGE] = CLEARED_STAGE
             continue
         if st[o + _F_STAGE] != TO_FILTER:
+            continue
+        if int(st[o + _F_HYP]) >= 2 * n:
+            # a misalignment: the tilt measured while it was confirmed onto the valve's learned
+            # wrench, and room to refine it (its force and moment variances grow)
+            j = int(st[o + _F_HYP]) - 2 * n
+            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
+            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
+            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            # the signatures are of nominal thrust: the angle is the thrust turned across over the
+            # thrust the valve really gives (its learned wrench along nominal), on its alarm row
+            along = 0.0
+            for q in range(3):
+                along += x[6 * j + q] * Wnom[j, q]
+            along /= f2
+            ne = int(st[_S_EVENTS])
+            q0 = _fault_base(n) + _NF * MAX_FAULTS + _NEV * (ne - 1)
+            if ne > 0 and along > 0.0 and st[q0 + 1] == j and st[q0 + 2] == MISALIGNMENT:
+                st[q0 + 3] = math.degrees(math.asin(min(1.0, math.sqrt(p1 * p1 + p2 * p2) / along)))
+            for q in range(6):
+                x[6 * j + q] += p1 * Wnom[j, 6 + q] + p2 * Wnom[j, 12 + q]
+                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            st[o + _F_STAGE] = IN_FILTER
             continue
         j = int(st[o + _F_HYP]) // 2
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
@@ -655,7 +875,7 @@ def unresolved(st: F64) -> bool:
 def leaks(st: F64, n: int, out: F64) -> None:
     """The confirmed leaks the filter models, ``out`` (n,): valve j delivers ``out[j]`` of its
     nominal wrench while closed (0: no leak). Their size is refined at every IMU update."""
-    fbase = _S_HDR + 6 * 2 * n
+    fbase = _fault_base(n)
     for j in range(n):
         out[j] = 0.0
     for f in range(int(st[_S_NFAULTS])):
@@ -671,7 +891,7 @@ def add_leaks(st: F64, Wnom: F64, mask: int | np.int64, out: F64) -> None:
     nominal wrench (nothing when there is no leak: ``out`` bit for bit). A thruster has one leak
     in the filter at most (raised again only once the earlier one is cleared)."""
     n = Wnom.shape[0]
-    fbase = _S_HDR + 6 * 2 * n
+    fbase = _fault_base(n)
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
         if st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK and st[o + _F_A] > 0.0:
@@ -692,6 +912,17 @@ def valve_mask(st: F64, mask: int | np.int64) -> np.int64:
     return ((cmd | np.int64(st[_S_OPEN])) & ~np.int64(st[_S_CLOSED])) | (cmd << tk.COMMANDED)
 
 
+def size_text(fault: str, theta: float) -> str:
+    """A fault's size as its alerts and reports say it: a leak or a partial loss as a percentage
+    of nominal thrust, a stuck valve as the fraction it delivers (or lost), a misalignment as the
+    tilt's angle."""
+    if fault == "misalignment":
+        return f"tilted {theta:.1f} deg"
+    if fault in ("leak", "partial loss"):
+        return f"{theta:.0%} of nominal thrust"
+    return f"size {theta:.2f} of nominal thrust"
+
+
 def events(st: np.ndarray, n: int) -> np.ndarray:
     """The alarms raised so far, ``(k, 7)`` rows of :data:`EVENT_FIELDS` (a copy)."""
     ev0 = _offsets(n)[2]
@@ -701,15 +932,21 @@ def events(st: np.ndarray, n: int) -> np.ndarray:
 
 def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
     """The faults raised and not cleared: ``(thruster, family, size)`` (size: fraction of nominal
-    thrust)."""
+    thrust; a tilt's: its angle, degrees)."""
     o = _offsets(n)[1]
     out = []
     for f in range(int(st[_S_NFAULTS])):
         r = st[o + _NF * f:o + _NF * (f + 1)]
         if r[_F_STAGE] == CLEARED_STAGE or r[_F_STAGE] == TO_CLEAR or r[_F_STAGE] == DISMISSED:
             continue
-        hyp, A, B = r[_F_HYP], r[_F_A], r[_F_B]
-        out.append((int(hyp) // 2, FAMILIES[int(hyp) % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
+        hyp, A, B = int(r[_F_HYP]), r[_F_A], r[_F_B]
+        if hyp >= 2 * n:                          # a tilt: its angle, degrees
+            p1, p2, _ = _solve2(r[_F_T11], r[_F_T12], r[_F_T22], r[_F_T1], r[_F_T2])
+            if r[_F_T11] <= 0.0:
+                p1, p2 = r[_F_THETA0], r[_F_THETA0B]
+            out.append((hyp - 2 * n, "tilt", math.degrees(math.hypot(p1, p2))))
+            continue
+        out.append((hyp // 2, FAMILIES[hyp % 2], float(B / A) if A > 0 else float(r[_F_THETA0])))
     return out
 
 

@@ -1,6 +1,8 @@
 """Scenario files: defaults, validation, degradations."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -109,3 +111,37 @@ def test_a_leaking_valve_thrusts_while_closed_and_nothing_else_changes():
         bad["degrade"] = [{"kind": "thruster_leak", "thruster": 5, "onset_s": 0.3, "factor": 1.5}]
         Simulation(scenario._build(sc.name, sc.text, bad))
     np.testing.assert_allclose(stepped.trace["thrust"], tr["thrust"], rtol=0, atol=1e-9)
+
+
+def test_a_tilted_thruster_turns_its_thrust_and_nothing_else_changes():
+    """thruster_misalign: from its onset a thruster's thrust acts along its actual direction tilted
+    by angle_deg towards the body axis most perpendicular to it; its thrust magnitude, the valves
+    and every other thruster unchanged; before the onset bit for bit the healthy run; the stepped
+    path (external valves) gives the same wrench."""
+    from simulator.thrusters import tilted
+
+    sc = scenario.load("capture", {"duration_s": 0.6})
+    data = dict(sc.data)
+    data["degrade"] = [{"kind": "thruster_misalign", "thruster": 2, "onset_s": 0.3, "angle_deg": 20.0}]
+    bent = scenario._build(sc.name, sc.text, data)
+    ref, tr = Simulation(sc).run(), Simulation(bent).run()
+    stepped = Simulation(bent, external_thrusters=True)
+    while stepped.k < stepped.n_steps:
+        stepped.step()
+    k0 = 300
+    assert np.array_equal(tr["thr_act"][:k0], ref["thr_act"][:k0])
+    err = Simulation(bent).thr_err
+    d = err.dir_actual[2]
+    new = tilted(d, 20.0)
+    assert math.degrees(math.acos(float(new @ d))) == pytest.approx(20.0, abs=1e-9)
+    assert abs(float(new[2])) > 0.3                     # thruster 2 (in the x-y plane) tilts towards z
+    col = np.concatenate([new, np.cross(err.layout.pos_m[2], new)])
+    others = np.delete(np.arange(err.layout.n), 2)
+    want = tr["thrust"][k0:, others] @ err.B_actual[:, others].T + tr["thrust"][k0:, 2:3] * col
+    assert tr["valves"][k0:, 2].sum() > 20
+    np.testing.assert_allclose(tr["thr_act"][k0:], want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(stepped.trace["thr_act"], tr["thr_act"], rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="thruster_misalign angle_deg"):
+        bad = dict(sc.data)
+        bad["degrade"] = [{"kind": "thruster_misalign", "thruster": 2, "onset_s": 0.3, "angle_deg": 120.0}]
+        Simulation(scenario._build(sc.name, sc.text, bad))
