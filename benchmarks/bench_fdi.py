@@ -207,6 +207,25 @@ def _group(case: dict) -> str | None:
     return fault
 
 
+def _named_block(vs: list[dict], judged: list[dict], err_key: str) -> dict:
+    """A summary row of the runs ``vs`` of one fault and size, judged on ``judged``: how many were
+    named, their delay and size error (``err_key``), the wrong alarms of all, the published wrench."""
+    ok = [v for v in judged if v["named"]]
+    return {
+        "runs": len(vs), "judged": len(judged), "named": len(ok),
+        "rate": len(ok) / len(judged) if judged else float("nan"),
+        "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
+        err_key: _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
+        "wrong_alarms": sum(v["false_alarms"] for v in vs),
+        "missed": sorted(v["case"]["thruster"] for v in judged if not v["named"]),
+        "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
+        "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
+        "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
+                                         f"{v.get('nrmse_axis', '')}".strip()
+                                         for v in ok if v["nrmse_published"] > 0.05),
+    }
+
+
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
     out: dict = {"stuck": {}, "loss": {}, "leak": {}, "misalign": {}, "healthy": {}, "per_thruster": {},
@@ -275,37 +294,13 @@ def summarise(verdicts: list[dict]) -> dict:
         }
     for size in sorted({v["case"]["factor"] for v in verdicts if v["case"]["fault"] == "leak"}):
         vs = [v for v in verdicts if v["case"]["fault"] == "leak" and v["case"]["factor"] == size]
-        ok = [v for v in vs if v["named"]]
-        out["leak"][f"{size:.2f}"] = {
-            "runs": len(vs), "named": len(ok), "rate": len(ok) / len(vs) if vs else float("nan"),
-            "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
-            "theta_err_max": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
-            "wrong_alarms": sum(v["false_alarms"] for v in vs),
-            "missed": sorted(v["case"]["thruster"] for v in vs if not v["named"]),
-            "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
-            "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
-            "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
-                                             f"{v.get('nrmse_axis', '')}".strip()
-                                             for v in ok if v["nrmse_published"] > 0.05),
-        }
+        out["leak"][f"{size:.2f}"] = _named_block(vs, vs, "theta_err_max")
     for angle in sorted({v["case"].get("angle_deg", 0.0) for v in verdicts if v["case"]["fault"] == "misalign"}):
         vs = [v for v in verdicts if v["case"]["fault"] == "misalign" and v["case"]["angle_deg"] == angle]
         judged = [v for v in vs if v["named"] or v.get("commanded_after", 1.0) >= MISALIGN_DUTY]
-        ok = [v for v in judged if v["named"]]
-        out["misalign"][f"{angle:g}"] = {
-            "runs": len(vs), "judged": len(judged), "named": len(ok),
-            "rate": len(ok) / len(judged) if judged else float("nan"),
-            "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
-            "angle_err_max_deg": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
-            "wrong_alarms": sum(v["false_alarms"] for v in vs),
-            "missed": sorted(v["case"]["thruster"] for v in judged if not v["named"]),
-            "rarely_commanded": sorted(v["case"]["thruster"] for v in vs if v not in judged),
-            "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
-            "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
-            "nrmse_published_over_5": sorted(f"t{v['case']['thruster']} {100 * v['nrmse_published']:.1f} % "
-                                             f"{v.get('nrmse_axis', '')}".strip()
-                                             for v in ok if v["nrmse_published"] > 0.05),
-        }
+        out["misalign"][f"{angle:g}"] = _named_block(vs, judged, "angle_err_max_deg")
+        out["misalign"][f"{angle:g}"]["rarely_commanded"] = sorted(v["case"]["thruster"] for v in vs
+                                                                   if v not in judged)
     # per thruster, the smallest loss named (the detection-delay vs fault-size curve's edge)
     for row in out["per_thruster"].values():
         named = [float(k.split()[1].rstrip("%")) for k, val in row.items()
@@ -315,6 +310,13 @@ def summarise(verdicts: list[dict]) -> dict:
         vs = [v for v in verdicts if v["case"]["fault"] is None and v["case"]["scenario"] == scen]
         out["healthy"][scen] = {"sessions": len(vs), "false_alarms": sum(v["false_alarms"] for v in vs)}
     return out
+
+
+def _named_note(d: dict, size_error: str) -> str:
+    """The note of a summary row (:func:`_named_block`)."""
+    return (f"{d['named']}/{d['judged']}; median delay {d['delay_median_s']:.2f} s, max {d['delay_max_s']:.2f} s; "
+            f"{size_error}; wrong alarms {d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after "
+            f"the alarm median {100 * d['nrmse_published_median']:.1f} %, max {100 * d['nrmse_published_max']:.1f} %")
 
 
 def figures(quick: bool = False) -> list[dict]:
@@ -346,25 +348,13 @@ def figures(quick: bool = False) -> list[dict]:
         rows.append(row(f"partial loss {float(size):.0%}: named within the session", 100 * d["rate"],
                         "% of judged runs", target=">= 95 %" if float(size) >= 0.15 else None,
                         ok=(d["rate"] >= TARGET_RATE) if float(size) >= 0.15 else None,
-                        note=f"{d['named']}/{d['judged']}; median delay {d['delay_median_s']:.2f} s, max "
-                             f"{d['delay_max_s']:.2f} s; size error max {d['theta_err_max']:.3f}; wrong alarms "
-                             f"{d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
-                             f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
-                             f"{100 * d['nrmse_published_max']:.1f} %"))
+                        note=_named_note(d, f"size error max {d['theta_err_max']:.3f}")))
     for size, d in s["leak"].items():
         rows.append(row(f"leak {float(size):.0%}: named within the session", 100 * d["rate"], "% of runs",
-                        note=f"{d['named']}/{d['runs']}; median delay {d['delay_median_s']:.2f} s, max "
-                             f"{d['delay_max_s']:.2f} s; size error max {d['theta_err_max']:.3f}; wrong alarms "
-                             f"{d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
-                             f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
-                             f"{100 * d['nrmse_published_max']:.1f} %"))
+                        note=_named_note(d, f"size error max {d['theta_err_max']:.3f}")))
     for angle, d in s["misalign"].items():
         rows.append(row(f"misalignment {angle} deg: named within the session", 100 * d["rate"], "% of judged runs",
-                        note=f"{d['named']}/{d['judged']}; median delay {d['delay_median_s']:.2f} s, max "
-                             f"{d['delay_max_s']:.2f} s; angle error max {d['angle_err_max_deg']:.1f} deg; wrong "
-                             f"alarms {d['wrong_alarms']}; missed {d['missed']}; published wrench NRMSE after the "
-                             f"alarm median {100 * d['nrmse_published_median']:.1f} %, max "
-                             f"{100 * d['nrmse_published_max']:.1f} %"))
+                        note=_named_note(d, f"angle error max {d['angle_err_max_deg']:.1f} deg")))
     for scen, d in s["healthy"].items():
         rows.append(row(f"false alarms, {d['sessions']} healthy {scen} sessions", d["false_alarms"], "alarms",
                         target="0", ok=d["false_alarms"] == 0))

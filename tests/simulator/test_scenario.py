@@ -85,18 +85,26 @@ def test_a_stuck_valve_is_not_in_the_valve_commands():
     assert np.array_equal(np.delete(commanded, 2, axis=1), np.delete(actual, 2, axis=1))
 
 
+def _degraded_runs(degrade: dict):
+    """0.6 s of capture healthy and with ``degrade`` from 0.3 s: (scenario, degraded scenario,
+    healthy trace, degraded trace, the degraded run stepped with external valves)."""
+    sc = scenario.load("capture", {"duration_s": 0.6})
+    data = dict(sc.data)
+    data["degrade"] = [degrade]
+    bad = scenario._build(sc.name, sc.text, data)
+    ref, tr = Simulation(sc).run(), Simulation(bad).run()
+    stepped = Simulation(bad, external_thrusters=True)
+    while stepped.k < stepped.n_steps:
+        stepped.step()
+    return sc, bad, ref, tr, stepped
+
+
 def test_a_leaking_valve_thrusts_while_closed_and_nothing_else_changes():
     """thruster_leak: from its onset a closed valve delivers that fraction of the thrust it gives
     open (gain, pressure, heating); before it, bit for bit the healthy run (after it the flight
     software answers the leak); the stepped path (external valves) gives the same thrust."""
-    sc = scenario.load("capture", {"duration_s": 0.6})
-    data = dict(sc.data)
-    data["degrade"] = [{"kind": "thruster_leak", "thruster": 5, "onset_s": 0.3, "factor": 0.25}]
-    leaky = scenario._build(sc.name, sc.text, data)
-    ref, tr = Simulation(sc).run(), Simulation(leaky).run()
-    stepped = Simulation(leaky, external_thrusters=True)
-    while stepped.k < stepped.n_steps:
-        stepped.step()
+    sc, leaky, ref, tr, stepped = _degraded_runs({"kind": "thruster_leak", "thruster": 5, "onset_s": 0.3,
+                                                  "factor": 0.25})
     k0 = 300
     assert np.array_equal(tr["thrust"][:k0], ref["thrust"][:k0])
     closed = ~tr["valves"][k0:, 5]
@@ -120,14 +128,8 @@ def test_a_tilted_thruster_turns_its_thrust_and_nothing_else_changes():
     path (external valves) gives the same wrench."""
     from simulator.thrusters import tilted
 
-    sc = scenario.load("capture", {"duration_s": 0.6})
-    data = dict(sc.data)
-    data["degrade"] = [{"kind": "thruster_misalign", "thruster": 2, "onset_s": 0.3, "angle_deg": 20.0}]
-    bent = scenario._build(sc.name, sc.text, data)
-    ref, tr = Simulation(sc).run(), Simulation(bent).run()
-    stepped = Simulation(bent, external_thrusters=True)
-    while stepped.k < stepped.n_steps:
-        stepped.step()
+    sc, bent, ref, tr, stepped = _degraded_runs({"kind": "thruster_misalign", "thruster": 2, "onset_s": 0.3,
+                                                 "angle_deg": 20.0})
     k0 = 300
     assert np.array_equal(tr["thr_act"][:k0], ref["thr_act"][:k0])
     err = Simulation(bent).thr_err
