@@ -92,6 +92,7 @@ class Pipeline:
         self._valves = np.zeros(4, dtype=self.estimator.valve_dtype) if self.estimator is not None else None
         self._valves_log: list[int] = []
         self._parts = np.zeros(64, dtype=self.estimator.dtype) if self.estimator is not None else None
+        self._row_bytes = np.dtype((np.void, self._parts.dtype.itemsize)) if self._parts is not None else None
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -165,8 +166,10 @@ class Pipeline:
                         if n + m > len(buf):
                             buf = self._parts = np.concatenate([buf[:n], np.zeros(max(n + m, 2 * len(buf)),
                                                                                    dtype=buf.dtype)])
-                        buf[n:n + m] = part
-                        buf["cause"][n:n + m] += lo
+                        # rows as bytes: a structured copy goes field by field, 6x the time
+                        buf[n:n + m].view(self._row_bytes)[:] = part.view(self._row_bytes)
+                        if lo:
+                            buf["cause"][n:n + m] += lo
                         n += m
                     if hi < len(events) or self._cut_last:
                         last = self._last_epoch if n == 0 else (int(buf["t_ns"][n - 1]), buf["flags"][n - 1])

@@ -394,7 +394,8 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                         rows, log, idx = rows[idx >= 0], log[idx >= 0], idx[idx >= 0]
                     if not len(rows):
                         continue
-                    rows = rows.copy()
+                    # copied as bytes: numpy copies a structured row field by field, 4x the time
+                    rows = rows.view(np.dtype((np.void, rows.dtype.itemsize))).copy().view(rows.dtype)
                     rows["bus"] = idx
                     ses.feed_frames(rows, log)
                     frames += len(rows)

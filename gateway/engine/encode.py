@@ -365,6 +365,7 @@ class EffortJson(SampleJson):
         self._progs = tuple(progs)
         self._arrays = b.arrays()
         self._prog_row = np.arange(self.per_row, dtype=np.int64)
+        self._prog_of = np.zeros((0, self.per_row), dtype=np.int64)
         self._nj = nj
         self._p = p
         self._arm_tab = arm_tab
@@ -388,10 +389,13 @@ class EffortJson(SampleJson):
         I[:, 1 + 2 * nj] = rows["thruster_cmd_t_ns"]
         I[:, 2 + 2 * nj] = rows["thruster_cmd_valves"]
         I[:, 3 + 2 * nj] = rows["thruster_cmd_have"]
-        I[:, 4 + 2 * nj:4 + 2 * nj + 6 * p] = np.repeat(rows["ft_bias_have"][:, :p], 6, axis=1)
-        I[:, 4 + 2 * nj + 6 * p:] = np.repeat(rows["contact_have"][:, :p], 6, axis=1)
-        prog_of = np.broadcast_to(self._prog_row, (n, self.per_row))
-        return self._run(F, I, np.ascontiguousarray(rows["flags"]), np.ascontiguousarray(prog_of), self.per_row,
+        # each arm's flag six times (broadcast: np.repeat's call costs more than the copy)
+        I[:, 4 + 2 * nj:4 + 2 * nj + 6 * p].reshape(n, p, 6)[:] = rows["ft_bias_have"][:, :p, None]
+        I[:, 4 + 2 * nj + 6 * p:].reshape(n, p, 6)[:] = rows["contact_have"][:, :p, None]
+        if len(self._prog_of) < n:             # the programs of n rows: a slice of rows kept from call to call
+            self._prog_of = np.ascontiguousarray(np.broadcast_to(self._prog_row, (max(n, 2 * len(self._prog_of)),
+                                                                                   self.per_row)))
+        return self._run(F, I, np.ascontiguousarray(rows["flags"]), self._prog_of[:n], self.per_row,
                          400 + 64 * nj + 320 * p + 32 * len(self.core.flag_names))
 
     def messages(self, rows: np.ndarray) -> list[bytes]:

@@ -54,7 +54,9 @@ class RecorderSink(Sink):
         if tf is None or tf[0] is not session:
             from gateway.log.foxglove import TransformWriter
 
-            tf = self._tf = (session, TransformWriter(self.recorder, session.pipeline.robot))
+            from .tfjson import TransformJson
+
+            tf = self._tf = (session, TransformWriter(self.recorder, session.pipeline.robot, encoder=TransformJson))
         n, refused = tf[1].rows(events, log_ns, session.pipeline.drivers.joint_names)
         if n:
             self._put(not refused, f"{refused} of {n} transforms", n)

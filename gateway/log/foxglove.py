@@ -287,15 +287,14 @@ class FrameTransforms:
 
         from drivers.kernel import IMU, JOINT
 
-        to_mine = self._map
-        if to_mine is None or to_mine[0] is not joint_names:
-            to_mine = self._map = (joint_names, np.array(
-                [self._index.get(n, -2) for n in joint_names] + [-2], dtype=np.int64))
-        to_mine = to_mine[1]
-        kinds = events["kind"]
         out: list[tuple[int, dict[str, Any]]] = []
         if len(events) <= SMALL_BATCH:         # live, a frame at a time: a loop costs less than numpy's calls
-            mine = to_mine.tolist()
+            to_mine = self._map
+            if to_mine is None or to_mine[0] is not joint_names:
+                to_mine = self._map = (joint_names, np.array(
+                    [self._index.get(n, -2) for n in joint_names] + [-2], dtype=np.int64))
+            kinds = events["kind"]
+            mine = to_mine[1].tolist()
             top = len(joint_names)
             for i, (kind, dev, t) in enumerate(zip(kinds.tolist(), events["device"].tolist(), log_ns.tolist())):
                 if kind == JOINT:
@@ -311,6 +310,35 @@ class FrameTransforms:
                     out.append((t, self.message(t)))
             return out
         # a batch: one compiled pass keeps the latest values and snapshots them at each due time
+        return self.messages(*self.snapshots(events, log_ns, joint_names))
+
+    def messages(self, times, angles, quats, m: int) -> list[tuple[int, dict[str, Any]]]:
+        """The messages of :meth:`snapshots`, ``(log_ns, message)``; the current values stay."""
+        out = []
+        latest, nxt = (self.angles, self._quat), self._next
+        for r in range(m):
+            self._restore(angles[r], quats[r])
+            t = int(times[r])
+            out.append((t, self.message(t)))
+        self.angles, self._next = latest[0], nxt
+        if latest[1] is not None:
+            self._set_normalised(latest[1])
+        return out
+
+    def snapshots(self, events, log_ns, joint_names) -> tuple:
+        """:meth:`rows` of a batch up to the messages: ``(times, angles, quaternions, m)``, the
+        values at each of the ``m`` due times (first ``m`` rows; angles in :attr:`devices` order,
+        NaN: none yet; the IMU's normalised quaternion, NaN: none yet), for a writer of their
+        messages (:mod:`gateway.engine.tfjson`); the batch's latest values are then the current
+        ones, and the next due time the one after the last message."""
+        import numpy as np
+
+        from drivers.kernel import IMU, JOINT
+
+        to_mine = self._map
+        if to_mine is None or to_mine[0] is not joint_names:
+            to_mine = self._map = (joint_names, np.array(
+                [self._index.get(n, -2) for n in joint_names] + [-2], dtype=np.int64))
         n, nj = len(events), len(self.angles)
         angles = np.array([math.nan if a is None else a for a in self.angles], dtype=np.float64)
         quat = np.full(4, math.nan) if self._quat is None else np.array(self._quat, dtype=np.float64)
@@ -318,52 +346,61 @@ class FrameTransforms:
         snap_t = np.empty(n, dtype=np.int64)
         snap_a = np.empty((n, nj), dtype=np.float64)
         snap_q = np.empty((n, 4), dtype=np.float64)
-        m = _scan(kinds, events["device"], events["values"], np.ascontiguousarray(log_ns, dtype=np.int64),
-                  to_mine, len(joint_names), JOINT, IMU, angles, quat, state, snap_t, snap_a, snap_q)
+        m = _scan(events["kind"], events["device"], events["values"], np.ascontiguousarray(log_ns, dtype=np.int64),
+                  to_mine[1], len(joint_names), JOINT, IMU, angles, quat, state, snap_t, snap_a, snap_q)
         self.ignored += int(state[2])
-        for r in range(m):
-            self._restore(snap_a[r], snap_q[r])
-            t = int(snap_t[r])
-            out.append((t, self.message(t)))
         self._restore(angles, quat)
         self._next = None if state[0] < 0 else int(state[0])
-        return out
+        return snap_t, snap_a, snap_q, m
 
     def _restore(self, angles, quat) -> None:
         """The state :func:`_scan` kept: angles (NaN: none yet), the IMU's normalised quaternion."""
         self.angles = [None if a != a else a for a in angles.tolist()]
         q = quat.tolist()
-        if q[0] == q[0] and tuple(q) != self._quat:
+        if q[0] != q[0]:
+            self._quat = self.attitude = None
+        elif tuple(q) != self._quat:
             self._set_normalised(tuple(q))
+
 
 class TransformWriter:
     """Records a robot's :class:`FrameTransforms` on :data:`TF_TOPIC` into a
     :class:`gateway.log.recorder.Recorder`, with the URDF on :data:`ROBOT_DESCRIPTION_TOPIC` at the
     log time of the first transforms of each file (the 3D panel's URDF layer takes the latest
     message on that topic; a rotated file gets its own copy). Not thread-safe: one caller at a
-    time (:class:`gateway.commands.record.Recording` holds a lock)."""
+    time (:class:`gateway.commands.record.Recording` holds a lock).
 
-    def __init__(self, recorder, robot, *, period_ns: int = TF_PERIOD_NS):
+    ``encoder``: made from the :class:`FrameTransforms`, something whose ``messages(times,
+    angles, quaternions, m)`` gives the JSON of :meth:`FrameTransforms.snapshots` as the
+    recorder would write the messages (or None: then they are written as objects); a batch of
+    rows is then written through it (``gateway.engine.tfjson.TransformJson``, compiled)."""
+
+    def __init__(self, recorder, robot, *, period_ns: int = TF_PERIOD_NS, encoder=None):
         self.recorder, self.robot = recorder, robot
         self.tf = FrameTransforms(robot, period_ns=period_ns)
+        self.encoder = None if encoder is None else encoder(self.tf)
         self._declared = False
         self._urdf_file = -1                  # the file index the URDF was last written into
         self.written = 0
 
-    def write(self, log_ns: int, message: dict[str, Any]) -> bool:
-        """Record one message; False if the recorder refused it (counted there)."""
+    def _start(self, log_ns: int) -> bool:
+        """The topics declared, the URDF recorded if this file has none yet; False if refused."""
         rec = self.recorder
         if not self._declared:
             rec.add_channel(TF_TOPIC, FRAME_TRANSFORMS_SCHEMA)
             rec.add_channel(ROBOT_DESCRIPTION_TOPIC, ROBOT_DESCRIPTION_SCHEMA)
             self._declared = True
-        ok = True
         files = len(rec.paths)
         if files != self._urdf_file:
             self._urdf_file = files
-            ok = rec.record(ROBOT_DESCRIPTION_TOPIC, {"data": self.robot.urdf, "robot": self.robot.name},
-                            log_time_ns=log_ns)
-        ok = rec.record(TF_TOPIC, message, log_time_ns=log_ns) and ok
+            return rec.record(ROBOT_DESCRIPTION_TOPIC, {"data": self.robot.urdf, "robot": self.robot.name},
+                              log_time_ns=log_ns)
+        return True
+
+    def write(self, log_ns: int, message: dict[str, Any]) -> bool:
+        """Record one message; False if the recorder refused it (counted there)."""
+        ok = self._start(log_ns)
+        ok = self.recorder.record(TF_TOPIC, message, log_time_ns=log_ns) and ok
         self.written += 1
         return ok
 
@@ -373,11 +410,29 @@ class TransformWriter:
 
     def rows(self, events, log_ns, joint_names) -> tuple[int, int]:
         """(messages recorded, refused)."""
+        if self.encoder is None or len(events) <= SMALL_BATCH:
+            refused = 0
+            out = self.tf.rows(events, log_ns, joint_names)
+            for t, msg in out:
+                refused += not self.write(t, msg)
+            return len(out), refused
+        tf = self.tf
+        times, angles, quats, m = tf.snapshots(events, log_ns, joint_names)
+        if not m:
+            return 0, 0
+        data = self.encoder.messages(times, angles, quats, m)
+        if data is None:                      # a value the encoder does not write: as objects
+            refused = 0
+            for t, msg in tf.messages(times, angles, quats, m):
+                refused += not self.write(t, msg)
+            return m, refused
         refused = 0
-        out = self.tf.rows(events, log_ns, joint_names)
-        for t, msg in out:
-            refused += not self.write(t, msg)
-        return len(out), refused
+        record = self.recorder.record_encoded
+        for d, t in zip(data, times[:m].tolist()):
+            ok = self._start(t)
+            refused += not (record(TF_TOPIC, None, d, t) and ok)
+        self.written += m
+        return m, refused
 
 
 @njit(cache=True, nogil=True)

@@ -289,10 +289,11 @@ class Recorder:
             raise ValueError(f"topic {topic}: log time {t} ns is negative")
         return self._put((info.key, t, now, data.encode()))
 
-    def record_encoded(self, topic: str, cls: type, data: bytes, log_time_ns: int) -> bool:
+    def record_encoded(self, topic: str, cls: type | None, data: bytes, log_time_ns: int) -> bool:
         """Queue one record already encoded as this recorder encodes a ``cls`` dataclass (the
         JSON of its fields, e.g. written from rows by :mod:`gateway.engine.encode`); the channel
-        is ``cls``'s, as :meth:`record` declares it. Returns ``False`` when refused (counted)."""
+        is ``cls``'s, as :meth:`record` declares it. ``cls`` None: a mapping's JSON, on a topic
+        :meth:`add_channel` declared with a schema. Returns ``False`` when refused (counted)."""
         info = self._encoded_topic(topic, cls, log_time_ns)
         return self._put((info.key, int(log_time_ns), time.time_ns(), data))
 
@@ -321,15 +322,17 @@ class Recorder:
                     self._dropped_full += refused
         return refused
 
-    def _encoded_topic(self, topic: str, cls: type, log_time_ns: int) -> _Topic:
+    def _encoded_topic(self, topic: str, cls: type | None, log_time_ns: int) -> _Topic:
         """The topic of ``cls`` records (declared on first use); its type and the time checked."""
         info = self._topics.get(topic)
         if info is None:
+            if cls is None:
+                raise ValueError(f"topic {topic}: records of mappings need the topic declared (add_channel)")
             with self._lock:
                 info = self._topics.get(topic) or self._new_topic(topic, qualname(cls), json_schema_for(cls), cls)
         elif info.cls is not cls:
             raise TypeError(f"topic {topic}: expected {info.cls.__name__ if info.cls else 'records'}, "
-                            f"got {cls.__name__}")
+                            f"got {cls.__name__ if cls else 'records'}")
         if log_time_ns < 0:
             raise ValueError(f"topic {topic}: log time {log_time_ns} ns is negative")
         return info
