@@ -62,7 +62,7 @@ from .thruster_kernel import F64, I64
 from .jitopts import jit as _jit, jit_alloc as _jit_alloc   # numba's njit, with the kernels' options
 
 RULE = "thruster-fault"                # the rule name of its alerts (live and bsc analyze)
-OPEN, LOSS, TILT = 0, 1, 2             # hypothesis families
+OPEN, LOSS = 0, 1                      # hypothesis families (then the tilts, hypotheses 2 n + j)
 FAMILIES = ("open", "loss", "tilt")
 STUCK_OPEN, LEAK, STUCK_CLOSED, PARTIAL_LOSS, CLEARED, MISALIGNMENT = range(6)
 TYPES = ("stuck open", "leak", "stuck closed", "partial loss", "cleared", "misalignment")
@@ -85,7 +85,6 @@ _NCFG = 18
 _S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_CLEARED, _S_NOISE, _S_HDR = (
     0, 1, 2, 4, 6, 7, 8, 9, 10, 11, 12)
 _A, _B, _CU, _CA, _CB, _RAISED = range(6)        # blocks of h = 2 n numbers after the header
-_T11, _T12, _T22, _T1, _T2 = 1, 2, 3, 4, 5        # blocks of n numbers after the tilt flags
 MAX_FAULTS = 4
 # a fault: its hypothesis, A and B since it was raised, the size that raised it, updates since,
 # when it was detected (ns), the detector (SHORT, LONG), its statistic, its stage, its type once
@@ -119,7 +118,7 @@ covariance and every statistic the detectors whiten by it."""
 NOISE_REF = 2.0                        # the noise level the thresholds and the gate were set at (healthy: 1.8)
 NOISE_CLIP = 4.0                       # an update adds at most this multiple of the current level
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
-TILT_MARGIN = 4.0                      # another hypothesis takes over a long candidate by this much more (_takes_over)
+TAKEOVER_MARGIN = 4.0                  # another hypothesis takes over a long candidate by this much more
 EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
 _NEV = len(EVENT_FIELDS)
 
@@ -321,15 +320,38 @@ def _solve2(a11: float, a12: float, a22: float, b1: float, b2: float) -> tuple[f
 
 
 @_jit
+def _tilt_solve(st: F64, base: int, stride: int) -> tuple[float, float, float]:
+    """:func:`_solve2` of a tilt's five sums ``(a11, a12, a22, b1, b2)`` kept at ``base`` every ``stride``."""
+    return _solve2(st[base], st[base + stride], st[base + 2 * stride], st[base + 3 * stride], st[base + 4 * stride])
+
+
+@_jit
+def _tilt_add(st: F64, base: int, stride: int, lam: float, a11: float, a12: float, a22: float, b1: float,
+              b2: float) -> None:
+    """A tilt's five sums at ``base`` every ``stride`` times ``lam``, plus the update's."""
+    st[base] = lam * st[base] + a11
+    st[base + stride] = lam * st[base + stride] + a12
+    st[base + 2 * stride] = lam * st[base + 2 * stride] + a22
+    st[base + 3 * stride] = lam * st[base + 3 * stride] + b1
+    st[base + 4 * stride] = lam * st[base + 4 * stride] + b2
+
+
+@_jit
+def _norm2(Wnom: F64, j: int, c0: int) -> float:
+    """The squared norm of thruster ``j``'s nominal force (``c0`` 0) or moment (3)."""
+    return float(Wnom[j, c0] * Wnom[j, c0] + Wnom[j, c0 + 1] * Wnom[j, c0 + 1] + Wnom[j, c0 + 2] * Wnom[j, c0 + 2])
+
+
+@_jit
 def _takes_over(llr: float, own: float, last: bool) -> bool:
     """Whether a hypothesis of log-likelihood ratio ``llr`` explains the same updates better than the
-    candidate's ``own``: by :data:`TILT_MARGIN` plus twice the ratio's noise, ``sqrt(2 llr)``
+    candidate's ``own``: by :data:`TAKEOVER_MARGIN` plus twice the ratio's noise, ``sqrt(2 llr)``
     (``2 llr`` is a non-central chi-squared of variance about ``4 llr``); at the ``last`` decision
     by the margin alone. On the real path, 0.5 s after it was raised, a 10 % leak of thruster 4
     scored 117 against a leak of 8 (126) and a tilt of 1 (128): not yet a decision; a tilt of
     thruster 2 against the leak of 11 it looks like, 1100 against 990: a decision."""
     noise = 0.0 if last else 2.0 * math.sqrt(2.0 * llr)
-    return bool(llr - own > TILT_MARGIN + noise)
+    return bool(llr - own > TAKEOVER_MARGIN + noise)
 
 
 @_jit
@@ -459,22 +481,14 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             # every hypothesis on the same innovation, since the candidate was raised
             for j in range(n):
                 a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, j, ew, g, gw, gw2)
-                st[tr + j] += a11
-                st[tr + n + j] += a12
-                st[tr + 2 * n + j] += a22
-                st[tr + 3 * n + j] += b1
-                st[tr + 4 * n + j] += b2
+                _tilt_add(st, tr + j, n, 1.0, a11, a12, a22, b1, b2)
                 for fam in range(2):
                     a, b = _project(Wnom, Ha, tap, L, n, m, j, fam, ew, g, gw)
                     st[tq + 2 * j + fam] += a
                     st[tq + h_all + 2 * j + fam] += b
         if hyp >= h_all:                          # a tilt: its 2 x 2 sums
             a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, hyp - h_all, ew, g, gw, gw2)
-            st[o + _F_T11] += a11
-            st[o + _F_T12] += a12
-            st[o + _F_T22] += a22
-            st[o + _F_T1] += b1
-            st[o + _F_T2] += b2
+            _tilt_add(st, o + _F_T11, 1, 1.0, a11, a12, a22, b1, b2)
             continue
         a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
         if leak_in_filter:
@@ -489,7 +503,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             continue
         hyp = int(st[o + _F_HYP])
         if hyp >= h_all:
-            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
+            p1, p2, _ = _tilt_solve(st, o + _F_T11, 1)
             if st[o + _F_STAGE] == CONFIRMING and st[o + _F_T11] <= 0.0:
                 p1 = st[o + _F_THETA0]            # the window's estimate until its own has data
                 p2 = st[o + _F_THETA0B]
@@ -519,8 +533,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 B0 = st[o + _F_B]
                 own = 0.5 * B0 * B0 / st[o + _F_A] if st[o + _F_A] > 0.0 and B0 > 0.0 else 0.0
             else:
-                own = 0.5 * _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1],
-                                    st[o + _F_T2])[2]
+                own = 0.5 * _tilt_solve(st, o + _F_T11, 1)[2]
             # an alternative better but within the noise: keep measuring (up to 4 confirm periods),
             # then the margin alone decides
             last = st[o + _F_COUNT] >= 4.0 * confirm
@@ -540,8 +553,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 else:
                     close = True
             for j in range(n):
-                p1, p2, T = _solve2(st[tr + j], st[tr + n + j], st[tr + 2 * n + j], st[tr + 3 * n + j],
-                                    st[tr + 4 * n + j])
+                p1, p2, T = _tilt_solve(st, tr + j, n)
                 llr = 0.5 * T
                 if (h_all + j == hyp or llr <= best_llr or llr <= cfg[_C_H + LONG]
                         or st[_S_HDR + _RAISED * h_all + h_all + j] != 0.0
@@ -566,15 +578,12 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                     st[o + _F_B] = st[tq + h_all + hyp]
                 else:
                     j = hyp - h_all
-                    st[o + _F_T11] = st[tr + j]
-                    st[o + _F_T12] = st[tr + n + j]
-                    st[o + _F_T22] = st[tr + 2 * n + j]
-                    st[o + _F_T1] = st[tr + 3 * n + j]
-                    st[o + _F_T2] = st[tr + 4 * n + j]
+                    for k in range(5):
+                        st[o + _F_T11 + k] = st[tr + k * n + j]
         if hyp >= h_all:
             # a tilt, measured on its own since raised: below the smallest tilt alarmed it is
             # dismissed (as below), else a misalignment, its angle in degrees, for the filter
-            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
+            p1, p2, _ = _tilt_solve(st, o + _F_T11, 1)
             ang = math.sqrt(p1 * p1 + p2 * p2)
             st[_S_HDR + _RAISED * h_all + hyp] = 0.0 if ang < cfg[_C_TILT_MIN] else 1.0
             if ang < cfg[_C_TILT_MIN]:
@@ -729,11 +738,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     lt = cfg[_C_LAM_TILT]
     for j in range(n):
         a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, j, ew, g, gw, gw2)
-        st[tb + _T11 * n + j] = lt * st[tb + _T11 * n + j] + a11
-        st[tb + _T12 * n + j] = lt * st[tb + _T12 * n + j] + a12
-        st[tb + _T22 * n + j] = lt * st[tb + _T22 * n + j] + a22
-        st[tb + _T1 * n + j] = lt * st[tb + _T1 * n + j] + b1
-        st[tb + _T2 * n + j] = lt * st[tb + _T2 * n + j] + b2
+        _tilt_add(st, tb + n + j, n, lt, a11, a12, a22, b1, b2)
     if upd <= cfg[_C_WARMUP]:
         st[_S_LEARN] = math.inf
         return math.inf
@@ -747,8 +752,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         if w == LONG:
             # the tilts compete with the CUSUMs by their log-likelihood ratio, half the GLR
             for j in range(n):
-                p1, p2, T = _solve2(st[tb + _T11 * n + j], st[tb + _T12 * n + j], st[tb + _T22 * n + j],
-                                    st[tb + _T1 * n + j], st[tb + _T2 * n + j])
+                p1, p2, T = _tilt_solve(st, tb + n + j, n)
                 if 0.5 * T > best_t:
                     best, best_t, theta, phi2 = h_all + j, 0.5 * T, p1, p2
             if best >= h_all:
@@ -794,11 +798,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_RRUN] = 0.0
         st[o + _F_RT] = 0.0
         st[o + _F_RC] = 0.0
-        st[o + _F_T11] = 0.0
-        st[o + _F_T12] = 0.0
-        st[o + _F_T22] = 0.0
-        st[o + _F_T1] = 0.0
-        st[o + _F_T2] = 0.0
+        for k in range(5):
+            st[o + _F_T11 + k] = 0.0
         st[o + _F_THETA0B] = phi2
         for k in range(5 * n + 2 * h_all):
             st[tr + k] = 0.0
@@ -833,8 +834,8 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             # the lost part back on the valve's learned wrench, and room to refine it
             j = int(st[o + _F_HYP]) // 2
             theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
-            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
-            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            f2 = _norm2(Wnom, j, 0)
+            t2 = _norm2(Wnom, j, 3)
             for q in range(6):
                 x[6 * j + q] += theta * Wnom[j, q]
                 P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
@@ -844,8 +845,8 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             # while stuck, the valve's wrench and the bias states were one sum (always open) or the
             # valve was not learnt (never open): both relearn
             j = int(st[o + _F_HYP]) // 2
-            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
-            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            f2 = _norm2(Wnom, j, 0)
+            t2 = _norm2(Wnom, j, 3)
             for q in range(6):
                 v = RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
                 P[6 * j + q, 6 * j + q] += v
@@ -858,9 +859,9 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             # a misalignment: the tilt measured while it was confirmed onto the valve's learned
             # wrench, and room to refine it (its force and moment variances grow)
             j = int(st[o + _F_HYP]) - 2 * n
-            p1, p2, _ = _solve2(st[o + _F_T11], st[o + _F_T12], st[o + _F_T22], st[o + _F_T1], st[o + _F_T2])
-            f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
-            t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+            p1, p2, _ = _tilt_solve(st, o + _F_T11, 1)
+            f2 = _norm2(Wnom, j, 0)
+            t2 = _norm2(Wnom, j, 3)
             # the signatures are of nominal thrust: the angle is the thrust turned across over the
             # thrust the valve really gives (its learned wrench along nominal), on its alarm row
             along = 0.0
@@ -878,8 +879,8 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             continue
         j = int(st[o + _F_HYP]) // 2
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
-        f2 = Wnom[j, 0] * Wnom[j, 0] + Wnom[j, 1] * Wnom[j, 1] + Wnom[j, 2] * Wnom[j, 2]
-        t2 = Wnom[j, 3] * Wnom[j, 3] + Wnom[j, 4] * Wnom[j, 4] + Wnom[j, 5] * Wnom[j, 5]
+        f2 = _norm2(Wnom, j, 0)
+        t2 = _norm2(Wnom, j, 3)
         st[o + _F_STAGE] = IN_FILTER
         if int(st[o + _F_HYP]) % 2 == OPEN:
             along = 0.0                       # the learned wrench's thrust along nominal, of nominal
@@ -998,7 +999,7 @@ def faults(st: np.ndarray, n: int) -> list[tuple[int, str, float]]:
             continue
         hyp, A, B = int(r[_F_HYP]), r[_F_A], r[_F_B]
         if hyp >= 2 * n:                          # a tilt: its angle, degrees
-            p1, p2, _ = _solve2(r[_F_T11], r[_F_T12], r[_F_T22], r[_F_T1], r[_F_T2])
+            p1, p2, _ = _tilt_solve(r, _F_T11, 1)
             if r[_F_T11] <= 0.0:
                 p1, p2 = r[_F_THETA0], r[_F_THETA0B]
             out.append((hyp - 2 * n, "tilt", math.degrees(math.hypot(p1, p2))))
