@@ -450,6 +450,29 @@ class ValveJson(SampleJson):
         return [raw[o[k]:o[k + 1]] for k in range(len(rows))]
 
 
+@dataclasses.dataclass(frozen=True)
+class Encoded:
+    """A batch of messages encoded into one buffer: message k goes on ``topics[which[k]]``
+    (records of ``classes[which[k]]``), comes from row ``row[k]`` of the batch, and is
+    ``data[offsets[k]:offsets[k + 1]]``; ``failed[k]``: a value was not finite, the payload is
+    empty and the message must be encoded from its object instead."""
+
+    topics: list[str]
+    classes: list[type]
+    which: np.ndarray
+    row: np.ndarray
+    data: np.ndarray
+    offsets: np.ndarray
+    failed: np.ndarray
+
+    def messages(self) -> list[tuple[str, type, bytes | None, int]]:
+        """``(key, type, payload, row)`` per message (payload None: encode the row's object)."""
+        raw, o, failed = self.data.tobytes(), self.offsets.tolist(), self.failed.tolist()
+        topics, classes = self.topics, self.classes
+        return [(topics[w], classes[w], None if failed[k] else raw[o[k]:o[k + 1]], r)
+                for k, (w, r) in enumerate(zip(self.which.tolist(), self.row.tolist()))]
+
+
 class RowEncoders:
     """A session's rows as payloads: the encoders and the key of every message."""
 
@@ -471,37 +494,54 @@ class RowEncoders:
                            kernel.TORQUE: [keys.torque_command(name, j) for j in joints],
                            kernel.IMU: [keys.imu(name)], kernel.THRUSTER: [keys.thruster_command(name)],
                            kernel.VALVE: [keys.valve_command(name)]}
+        # the sample topics in one list: kind k's device d is _sample_topics[_sample_base[k] + d]
+        kinds = sorted(self.sample_key)
+        self._sample_base = np.zeros(max(kinds) + 1, dtype=np.int64)
+        self._sample_topics: list[str] = []
+        self._sample_classes: list[type] = []
+        for kd in kinds:
+            self._sample_base[kd] = len(self._sample_topics)
+            self._sample_topics += self.sample_key[kd]
+            self._sample_classes += [self.sample_type[kd]] * len(self.sample_key[kd])
         self.effort_key = [keys.joint_efforts(name, a) for a in arms] + [keys.thruster_effort(name)]
         self.effort_type = [JointEfforts] * len(arms) + [ThrusterEffort]
 
+    def sample_encoded(self, events: np.ndarray) -> Encoded:
+        """Every event of a batch as its sample's JSON."""
+        buf, off = self.samples.encode(events)
+        kinds = events["kind"].astype(np.int64)
+        return Encoded(self._sample_topics, self._sample_classes, self._sample_base[kinds] + events["device"],
+                       np.arange(len(events)), buf, off, self.samples.failed)
+
+    def effort_encoded(self, rows: np.ndarray) -> Encoded:
+        """Every effort row as its messages, in :meth:`EstimatorCore.efforts` order (one
+        :class:`JointEfforts` per arm, then the :class:`ThrusterEffort`)."""
+        enc = self.efforts
+        buf, off = enc.encode(rows)
+        per, n = enc.per_row, len(rows)
+        return Encoded(self.effort_key, self.effort_type, np.tile(np.arange(per), n),
+                       np.repeat(np.arange(n), per), buf, off, enc.failed)
+
+    def valve_encoded(self, rows: np.ndarray) -> Encoded:
+        """Every valve row as its :class:`ValveWrenches` message."""
+        enc = self.valves
+        buf, off = enc.encode(rows)
+        return Encoded([self.valve_key], [ValveWrenches], np.zeros(len(rows), dtype=np.int64),
+                       np.arange(len(rows)), buf, off, enc.failed)
+
     def sample_messages(self, events: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
         """``(key, type, payload, k)`` per event (payload None: not finite, encode event ``k``'s object)."""
-        buf, off = self.samples.encode(events)
-        raw, o, failed = buf.tobytes(), off.tolist(), self.samples.failed
-        kinds, devs = events["kind"].tolist(), events["device"].tolist()
-        key, typ = self.sample_key, self.sample_type
-        return [(key[kd][dv], typ[kd], None if failed[k] else raw[o[k]:o[k + 1]], k)
-                for k, (kd, dv) in enumerate(zip(kinds, devs))]
+        return self.sample_encoded(events).messages()
 
     def effort_messages(self, rows: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
         """``(key, type, payload, row)`` per effort message, in :meth:`EstimatorCore.efforts` order
         (payload None: not finite, encode :meth:`effort_object` instead)."""
-        enc = self.efforts
-        buf, off = enc.encode(rows)
-        raw, o, failed = buf.tobytes(), off.tolist(), enc.failed
-        per = enc.per_row
-        key, typ = self.effort_key, self.effort_type
-        return [(key[k % per], typ[k % per], None if failed[k] else raw[o[k]:o[k + 1]], k // per)
-                for k in range(len(rows) * per)]
+        return self.effort_encoded(rows).messages()
 
     def valve_messages(self, rows: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
         """``(key, type, payload, row)`` per valve row (payload None: not finite, encode
         :meth:`valve_object` instead)."""
-        enc = self.valves
-        buf, off = enc.encode(rows)
-        raw, o, failed = buf.tobytes(), off.tolist(), enc.failed
-        key = self.valve_key
-        return [(key, ValveWrenches, None if failed[k] else raw[o[k]:o[k + 1]], k) for k in range(len(rows))]
+        return self.valve_encoded(rows).messages()
 
     def valve_object(self, rows: np.ndarray, k: int):
         """The object of valve row ``k``."""

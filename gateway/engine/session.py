@@ -119,27 +119,44 @@ class Session:
 
     # -- payloads: encoded once per batch, for every row sink (a zenoh payload and a log message
     #    are the same bytes, gateway.log.schema)
+    def sample_encoded(self, events: np.ndarray):
+        """A batch of sample events encoded into one buffer (:class:`gateway.engine.encode.Encoded`),
+        once whatever the number of sinks that ask (the publisher and the recorder)."""
+        return self._encoded("_sample_memo", events, "sample_encoded")
+
+    def effort_encoded(self, rows: np.ndarray):
+        """The same for a batch of effort rows."""
+        return self._encoded("_effort_memo", rows, "effort_encoded")
+
+    def valve_encoded(self, rows: np.ndarray):
+        """The same for a batch of valve rows."""
+        return self._encoded("_valve_memo", rows, "valve_encoded")
+
     def sample_messages(self, events: np.ndarray) -> list:
-        """``(key, type, payload, event)`` of a batch of sample events (:class:`RowEncoders`),
-        encoded once whatever the number of sinks that ask (the publisher and the recorder)."""
-        memo = self._sample_memo
-        if memo is None or memo[0] is not events:
-            memo = self._sample_memo = (events, self.encoders().sample_messages(events))
-        return memo[1]
+        """``(key, type, payload, event)`` of a batch of sample events, from :meth:`sample_encoded`."""
+        return self._messages("_sample_memo", events, "sample_encoded")
 
     def effort_messages(self, rows: np.ndarray) -> list:
         """The same for a batch of effort rows."""
-        memo = self._effort_memo
-        if memo is None or memo[0] is not rows:
-            memo = self._effort_memo = (rows, self.encoders().effort_messages(rows))
-        return memo[1]
+        return self._messages("_effort_memo", rows, "effort_encoded")
 
     def valve_messages(self, rows: np.ndarray) -> list:
         """The same for a batch of valve rows."""
-        memo = self._valve_memo
+        return self._messages("_valve_memo", rows, "valve_encoded")
+
+    def _encoded(self, memo_name: str, rows: np.ndarray, how: str):
+        memo = getattr(self, memo_name)
         if memo is None or memo[0] is not rows:
-            memo = self._valve_memo = (rows, self.encoders().valve_messages(rows))
+            memo = [rows, getattr(self.encoders(), how)(rows), None]
+            setattr(self, memo_name, memo)
         return memo[1]
+
+    def _messages(self, memo_name: str, rows: np.ndarray, how: str) -> list:
+        enc = self._encoded(memo_name, rows, how)
+        memo = getattr(self, memo_name)
+        if memo[2] is None:
+            memo[2] = enc.messages()
+        return memo[2]
 
     def encoders(self):
         """This session's :class:`gateway.engine.encode.RowEncoders` (made on first use)."""

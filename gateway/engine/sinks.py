@@ -82,14 +82,29 @@ class RecorderSink(Sink):
 
     # rows (``rows=True``): the records written straight from them (encoded once by the session)
     def sample_rows(self, session, events: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record(session.sample_messages(events), log_ns,
-                     lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
+        self._record_encoded(session, session.sample_encoded, events, log_ns,
+                             lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
 
     def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record(session.effort_messages(rows), log_ns, lambda i: session.encoders().effort_object(rows, i))
+        self._record_encoded(session, session.effort_encoded, rows, log_ns,
+                             lambda i: session.encoders().effort_object(rows, i))
 
     def valve_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record(session.valve_messages(rows), log_ns, lambda i: session.encoders().valve_object(rows, i))
+        self._record_encoded(session, session.valve_encoded, rows, log_ns,
+                             lambda i: session.encoders().valve_object(rows, i))
+
+    def _record_encoded(self, session, encoded, rows: np.ndarray, log_ns: np.ndarray, object_of) -> None:
+        """A batch as one block of records (no Python step per message, here or in the
+        recorder's thread); with a value that is not finite in it, message by message."""
+        enc = encoded(rows)
+        block = getattr(self.recorder, "record_encoded_block", None)
+        if block is None or enc.failed.any():
+            kind = encoded.__name__.replace("_encoded", "_messages")
+            self._record(getattr(session, kind)(rows), log_ns, object_of)
+            return
+        n = len(enc.which)
+        refused = block(enc.topics, enc.classes, enc.which, enc.data, enc.offsets, log_ns[enc.row])
+        self._put(not refused, f"{refused} of {n} records", n)
 
     def _record(self, messages, log_ns: np.ndarray, object_of) -> None:
         rec, logs = self.recorder, log_ns.tolist()

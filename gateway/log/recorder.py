@@ -152,6 +152,16 @@ class _FdStream:
             os.close(fd)
 
 
+class _Block:
+    """Many encoded messages as one queue item (:meth:`Recorder.record_encoded_block`): topic key,
+    log time and payload slice of each, one publish time."""
+
+    __slots__ = ("keys", "log_ns", "data", "offsets", "publish_ns")
+
+    def __init__(self, keys, log_ns, data, offsets, publish_ns: int):
+        self.keys, self.log_ns, self.data, self.offsets, self.publish_ns = keys, log_ns, data, offsets, publish_ns
+
+
 class Recorder:
     """Writes typed records and raw CAN frames to MCAP from any thread; a context manager.
 
@@ -222,7 +232,10 @@ class Recorder:
         self._close_done = False
         self._error: BaseException | None = None
 
-        # Caller side (under _lock): refused messages.
+        # Caller side (under _lock): refused messages; messages queued in blocks beyond one per
+        # block (the writer thread counts those it popped), so the bound stays in messages.
+        self._block_extra_queued = 0
+        self._block_extra_popped = 0
         self._dropped_full = 0
         self._dropped_closed = 0
         self._controls_queued = 0
@@ -310,10 +323,38 @@ class Recorder:
             elif t < 0:
                 raise ValueError(f"topic {topic}: log time {t} ns is negative")
             out.append((key, int(t), now, data))
-        queue = self._queue
-        take = 0 if self._closed else max(0, min(len(out), self._queue_size - len(queue)))
-        queue.extend(out if take == len(out) else out[:take])
-        refused = len(out) - take
+        take = 0 if self._closed else max(0, min(len(out), self._queue_size - self.queue_depth))
+        self._queue.extend(out if take == len(out) else out[:take])
+        return self._refused(len(out) - take)
+
+    def record_encoded_block(self, topics, classes, which, data, offsets, log_ns) -> int:
+        """:meth:`record_encoded` for a block of messages in one queue item, written by the
+        writer thread with no Python step per message (:meth:`McapWriter.add_messages`):
+        message k is on ``topics[which[k]]`` (records of ``classes[which[k]]``, as
+        :meth:`record_encoded`), at log time ``log_ns[k]``, its payload
+        ``data[offsets[k] - offsets[0]:offsets[k + 1] - offsets[0]]`` (``data``: bytes or a uint8
+        array, ``offsets`` n + 1 of them). Queued in order; when the queue has room for only
+        some, the first ones are queued. Returns how many were refused (counted)."""
+        import numpy as np
+
+        log_ns = np.asarray(log_ns, dtype=np.int64)
+        n = len(log_ns)
+        if n == 0:
+            return 0
+        if int(log_ns.min()) < 0:
+            k = int(np.argmax(log_ns < 0))
+            raise ValueError(f"topic {topics[int(which[k])]}: log time {int(log_ns[k])} ns is negative")
+        key_of = np.array([self._encoded_topic(t, c, 0).key for t, c in zip(topics, classes)], dtype=np.int64)
+        take = 0 if self._closed else max(0, min(n, self._queue_size - self.queue_depth))
+        if take:
+            with self._lock:
+                self._block_extra_queued += take - 1
+            self._queue.append(_Block(key_of[np.asarray(which)[:take]], log_ns[:take], data,
+                                      np.asarray(offsets, dtype=np.int64)[:take + 1], time.time_ns()))
+        return self._refused(n - take)
+
+    def _refused(self, refused: int) -> int:
+        """Count ``refused`` messages a call could not queue (closed, or the queue full); returns it."""
         if refused:
             with self._lock:
                 if self._closed:
@@ -454,7 +495,8 @@ class Recorder:
 
     @property
     def stats(self) -> RecorderStats:
-        depth = max(0, len(self._queue) - (self._controls_queued - self._controls_popped))
+        depth = max(0, len(self._queue) - (self._controls_queued - self._controls_popped)
+                    + self._block_extra_queued - self._block_extra_popped)
         stream = self._stream
         return RecorderStats(
             received=self._popped + depth, written=self._written, flushed=self._flushed,
@@ -468,7 +510,7 @@ class Recorder:
     @property
     def queue_depth(self) -> int:
         """Messages waiting for the writer thread now."""
-        return len(self._queue)
+        return len(self._queue) + self._block_extra_queued - self._block_extra_popped
 
     @property
     def queue_size(self) -> int:
@@ -498,7 +540,8 @@ class Recorder:
         self._thread.join(timeout)
         if not self._thread.is_alive():
             # Appended after the stop item (a race with close): never written, so counted.
-            late = sum(1 for item in self._queue if item.__class__ is tuple)
+            late = sum(1 if item.__class__ is tuple else len(item.log_ns) for item in self._queue
+                       if item.__class__ is tuple or item.__class__ is _Block)
             self._queue.clear()
             with self._lock:
                 self._dropped_closed += late
@@ -529,7 +572,7 @@ class Recorder:
     # --------------------------------------------------------------- caller-side helpers
 
     def _put(self, item: tuple) -> bool:
-        if len(self._queue) >= self._queue_size or self._closed:
+        if self.queue_depth >= self._queue_size or self._closed:
             with self._lock:
                 if self._closed:
                     self._dropped_closed += 1
@@ -612,6 +655,20 @@ class Recorder:
                     self._high_water = max(self._high_water, len(queue) + 1)
                     self._periodic()
                 continue
+            if item.__class__ is _Block:
+                n = len(item.log_ns)
+                self._popped += n
+                self._block_extra_popped += n - 1
+                if self._error is None:
+                    try:
+                        self._write_block(item)
+                    except Exception as exc:  # noqa: BLE001 - surfaced by close() and stats
+                        self._fail(exc)
+                else:
+                    self._dropped_error += n
+                self._high_water = max(self._high_water, len(queue) + n)
+                self._periodic()
+                continue
             self._controls_popped += 1
             if item.kind == "stop":
                 self._finish(final=True)
@@ -632,6 +689,45 @@ class Recorder:
             self._flush_chunk()
             if self._rotate_bytes is not None and self._stream.tell() >= self._rotate_bytes:
                 self._rotate()
+
+    def _write_block(self, block: _Block) -> None:
+        """A block's messages, cut where a chunk fills as :meth:`_write_message` cuts it (after
+        the message that reaches the chunk size): the same chunks as one message at a time."""
+        import numpy as np
+
+        keys, offsets = block.keys, block.offsets
+        n = len(keys)
+        cum = np.cumsum(_MESSAGE_OVERHEAD + (offsets[1:] - offsets[:-1]))
+        data = np.frombuffer(block.data, dtype=np.uint8) if isinstance(block.data, (bytes, bytearray)) else block.data
+        lo = 0
+        while lo < n:
+            if self._pending_msgs == 0:
+                self._chunk_started = time.monotonic()
+            before = int(cum[lo - 1]) if lo else 0
+            # the first message at which the chunk reaches its size ends this piece
+            room = self._chunk_size - self._pending_bytes
+            hi = min(n, int(np.searchsorted(cum, before + room, side="left")) + 1)
+            # channels and sequences of this file (a rotation between pieces starts them again)
+            piece = keys[lo:hi]
+            seqs = np.empty(hi - lo, dtype=np.uint32)
+            uniq, first = np.unique(piece, return_index=True)
+            for key in uniq[np.argsort(first)].tolist():
+                sel = np.flatnonzero(piece == key)
+                start = self._sequences[key]
+                seqs[sel] = (start + np.arange(len(sel), dtype=np.int64)) & 0xFFFFFFFF
+                self._sequences[key] = start + len(sel)
+            cids = np.asarray(self._channel_ids, dtype=np.int64)[piece]
+            base = int(offsets[lo] - offsets[0])
+            self._writer.add_messages(cids, block.log_ns[lo:hi], data[base:], offsets[lo:hi + 1],
+                                      block.publish_ns, seqs)
+            self._written += hi - lo
+            self._pending_msgs += hi - lo
+            self._pending_bytes += int(cum[hi - 1]) - before
+            lo = hi
+            if self._pending_bytes >= self._chunk_size:
+                self._flush_chunk()
+                if self._rotate_bytes is not None and self._stream.tell() >= self._rotate_bytes:
+                    self._rotate()
 
     def _handle_control(self, item: _Control) -> None:
         try:

@@ -82,3 +82,49 @@ def test_a_recorder_file_is_complete_and_reads_back(tmp_path):
         got = [(m.log_time, m.data) for _, _, m in make_reader(f).iter_messages(topics=["/t"])]
     assert [t for t, _ in got] == list(range(1_000, 6_000))
     assert got[7][1] == b'{"t_ns":7,"v":1.75}'
+
+
+def _play_blocks(writer, calls, rnd: random.Random) -> None:
+    """The same calls, runs of messages handed over as blocks (random lengths; the publish
+    times of a block are one, so a block is cut where the next message's differs)."""
+    import numpy as np
+
+    writer.start(profile="", library="bsc-test")
+    run: list = []
+
+    def put() -> None:
+        if run:
+            data = b"".join(m[2] for m in run)
+            offsets = np.cumsum([0] + [len(m[2]) for m in run]) + 1000       # offsets need not start at 0
+            writer.add_messages(np.array([m[0] for m in run]), np.array([m[1] for m in run]), data, offsets,
+                                run[0][3], np.array([m[4] for m in run], dtype=np.uint32))
+            run.clear()
+
+    for name, *args in calls:
+        if name == "add_message":
+            if run and (args[3] != run[0][3] or rnd.random() < 0.05):
+                put()
+            if rnd.random() < 0.1:                                          # some one by one, between blocks
+                put()
+                writer.add_message(*args)
+            else:
+                run.append(args)
+            continue
+        put()
+        if name == "flush":
+            writer.end_chunk()
+        else:
+            getattr(writer, name)(*args)
+    put()
+    writer.finish()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_blocks_of_messages_write_the_same_bytes(seed):
+    calls = _calls(random.Random(seed))
+    # a block has one publish time: runs of 40 messages share one
+    calls = [("add_message", *c[1:4], c[4] // 40, c[5]) if c[0] == "add_message" else c for c in calls]
+    lib, ours = io.BytesIO(), io.BytesIO()
+    _play(Writer(lib, chunk_size=1 << 62, compression=CompressionType.ZSTD), calls, ours=False)
+    _play_blocks(McapWriter(ours, compression=CompressionType.ZSTD), calls, random.Random(seed))
+    assert ours.getvalue() == lib.getvalue()

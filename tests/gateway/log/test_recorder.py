@@ -403,3 +403,91 @@ def test_records_given_together_keep_their_order_and_refusals_are_counted(tmp_pa
             rec.record_encoded_many(batch[:4] + [(batch[4][0], Alert, batch[4][2], -1)])
         with pytest.raises(TypeError):
             rec.record_encoded_many([(batch[0][0], Alert, batch[0][2], 10), (batch[0][0], ThrusterEffort, b"{}", 11)])
+
+
+def _alerts_block(n: int):
+    """``n`` Alert records on three topics as one block: (topics, classes, which, data, offsets, log_ns)."""
+    import numpy as np
+
+    from gateway.efforts import Alert
+    from gateway.log.schema import dataclass_json
+
+    enc = dataclass_json(Alert)
+    payloads = [enc(Alert("r", "sensor", "imu", "x", "info", "raised", k, k, f"n{k}" * (k % 7))).encode()
+                for k in range(n)]
+    which = np.array([k % 3 for k in range(n)])
+    offsets = np.cumsum([0] + [len(p) for p in payloads])
+    log_ns = 10 + np.arange(n) * 1000 - 5000 * (np.arange(n) % 2)     # not in time order
+    log_ns -= log_ns.min()
+    return ["/a/0", "/a/1", "/a/2"], [Alert] * 3, which, b"".join(payloads), offsets, log_ns
+
+
+def test_a_block_of_records_is_written_as_the_same_records_one_by_one(tmp_path):
+    """record_encoded_block (an offline replay's path): the same messages (topics, log times,
+    payloads, sequences) in the same chunks as record_encoded_many, across chunk ends and a
+    rotation; queue accounting in messages."""
+    from mcap.reader import make_reader
+
+    from gateway.efforts import Alert
+
+    topics, classes, which, data, offsets, log_ns = _alerts_block(3000)
+    o = offsets.tolist()
+
+    def read(paths):
+        out = []
+        for p in paths:
+            with open(p, "rb") as f:
+                reader = make_reader(f)
+                chunks = [(c.message_start_time, c.message_end_time, c.uncompressed_size)
+                          for c in reader.get_summary().chunk_indexes]
+                out.append(([(ch.topic, m.log_time, m.sequence, bytes(m.data)) for _, ch, m in reader.iter_messages(
+                    log_time_order=False)], chunks))
+        return out
+
+    kw = dict(chunk_size=4096, rotate_bytes=4 * 4096)
+    with Recorder(tmp_path / "one.mcap", **kw) as rec:
+        batch = [(topics[w], Alert, data[o[k]:o[k + 1]], int(t)) for k, (w, t) in enumerate(zip(which, log_ns))]
+        assert rec.record_encoded_many(batch[:1000]) == 0
+        assert rec.record_encoded_many(batch[1000:]) == 0
+    with Recorder(tmp_path / "block.mcap", **kw) as rec:
+        assert rec.record_encoded_block(topics, classes, which[:1000], data, offsets[:1001], log_ns[:1000]) == 0
+        assert rec.record_encoded_block(topics, classes, which[1000:], data[o[1000]:], offsets[1000:],
+                                        log_ns[1000:]) == 0
+    one, block = read(rec_paths(tmp_path, "one")), read(rec_paths(tmp_path, "block"))
+    assert len(one) >= 2 and sum(len(m) for m, _ in one) == 3000       # rotated, nothing lost
+    assert block == one
+
+
+def rec_paths(tmp_path, stem):
+    return sorted(tmp_path.glob(f"{stem}_*.mcap"))
+
+
+def test_a_block_is_refused_where_the_queue_has_no_room_and_bad_times_raise(tmp_path):
+    topics, classes, which, data, offsets, log_ns = _alerts_block(50)
+    rec = Recorder(tmp_path / "q.mcap", queue_size=20)
+    gate = threading.Event()
+    real = rec._write_block
+
+    def stalled_disk(item):
+        gate.wait(10)
+        real(item)
+
+    rec._write_block = stalled_disk
+    assert rec.record_encoded_block(topics, classes, which[:15], data, offsets[:16], log_ns[:15]) == 0
+    assert rec.stats.queue_depth in (0, 15)           # 15 queued, or taken by the (stalled) writer
+    refused = rec.record_encoded_block(topics, classes, which[15:], data[int(offsets[15]):], offsets[15:],
+                                       log_ns[15:])
+    # room for 20 messages less what is queued (15, and the topics' declarations until the writer takes them)
+    assert 15 <= refused <= 33 and rec.stats.dropped_queue_full == refused
+    gate.set()
+    rec.close()
+    final = rec.stats
+    assert final.written == final.flushed == 50 - refused
+    assert final.received + final.dropped_queue_full == 50
+    assert rec.record_encoded_block(topics, classes, which, data, offsets, log_ns) == 50   # closed: all refused
+    assert rec.stats.dropped_closed == 50
+    with Recorder(tmp_path / "bad.mcap") as rec:
+        bad = log_ns.copy()
+        bad[4] = -1
+        with pytest.raises(ValueError, match="negative"):
+            rec.record_encoded_block(topics, classes, which, data, offsets, bad)
