@@ -138,7 +138,7 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: i
     import statistics
 
     from gateway.engine import Session
-    from gateway.log.frames import mcap_frames
+    from gateway.log.frames import batched, mcap_frames
     from gateway.engine.warm import warm
     from gateway.log.context import read_context, resolve_robot
     from gateway.replay import OUTPUT_NAME, replay_offline
@@ -163,7 +163,7 @@ def measure(seconds: float = 5.0, log: Path | None = None, say=print, repeats: i
         with Session(robot) as probe:
             buses = list(probe.buses)
         t0 = time.perf_counter()
-        chunks = list(mcap_frames(log, buses) or ())
+        chunks = list(batched(mcap_frames(log, buses) or iter(())))     # merged, as bsc replay merges them
         t_read = time.perf_counter() - t0
         frames = sum(len(c.frames) for c in chunks)
         if not chunks:

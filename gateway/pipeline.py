@@ -182,8 +182,10 @@ class Pipeline:
                 self._efforts(rows, t_frame[events["frame"][rows["cause"]]])
             alarms = est.thruster_alarms()
             if alarms:
-                self.log_ns = int(t_frame[-1])
-                self._thruster_alarms(alarms)
+                # each at the log time of its own epoch (frame clock + this batch's offset to log
+                # time), not the batch's last frame: the same whatever the batch
+                offset = int(t_frame[-1]) - int(frames["t_ns"][-1])
+                self._thruster_alarms(alarms, offset)
 
     def flush(self) -> None:
         """End of input: compute the epochs still waiting for members (log time: the last frame's)."""
@@ -245,16 +247,19 @@ class Pipeline:
             self.log_ns = t
             emit(key, obj)
 
-    def _thruster_alarms(self, alarms: list[dict]) -> None:
+    def _thruster_alarms(self, alarms: list[dict], offset: int | None = None) -> None:
         """The estimator's thruster faults (gateway/estimator/fdi.py) as alerts on
         ``bsc/<robot>/alerts``: critical for a stuck valve, a warning for a partial loss, a
         leak or a misalignment; evidence: the thruster, the fault's size (fraction of nominal
         thrust; a misalignment's tilt, degrees), the GLR or CUSUM statistic and the type's code
-        (0 stuck open, 1 leak, 2 stuck closed, 3 partial loss, 5 misalignment)."""
+        (0 stuck open, 1 leak, 2 stuck closed, 3 partial loss, 5 misalignment). ``offset``: frame
+        clock to log time (each alert then at its epoch's log time); None: at :attr:`log_ns`."""
         from gateway.efforts import Alert
         from gateway.estimator import fdi
 
         for a in alarms:
+            if offset is not None:
+                self.log_ns = a["t_ns"] + offset
             j, fault = a["thruster"], a["fault"]
             stuck = fault in ("stuck open", "stuck closed")
             alert = Alert(self.name, "thruster", f"thruster{j}", fdi.RULE, "critical" if stuck else "warning",

@@ -270,8 +270,9 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
     from drivers.samples import BusHealth, DeviceHealth
     from gateway.efforts import Alert, JointEfforts, ThrusterEffort, ValveWrenches
     from gateway.engine import Session, Sink
+    from gateway.engine.deferred import deferred
     from gateway.engine.sinks import RecorderSink
-    from gateway.log.frames import mcap_frames, read_ahead
+    from gateway.log.frames import batched, mcap_frames, read_ahead
     from gateway.log.recorder import Recorder
 
     import robot_description
@@ -357,61 +358,64 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
             # filter's prior, without which its wrenches differ from the live run's
             layout = (ThrusterLayout.from_scenario_text(scenario[1].decode("utf-8", "replace"),
                                                         f"{path}: {SCENARIO_ATTACHMENT}") if scenario else None)
-            ses = Session(rob, [RecorderSink(rec, frames=copy_can, offline=True, rows=True), Count()],
-                          model_robot=model_robot, fd=use_fd, layout=layout, pipeline_factory=Pipeline,
-                          samples=samples)
-            known = set(ses.buses)
-            skipped: Counter[str] = Counter()
-            bar = _bar(progress, ctx, start_ns, end_ns, "replay")
-            frames = 0
-            first = last = None
-            last_bar = None
-            t0 = time.perf_counter()
+            # the output encoded and written by a thread of its own while the next frames are
+            # estimated (gateway/engine/deferred.py): the same calls in the same order, on two cores
+            with deferred([RecorderSink(rec, frames=copy_can, offline=True, rows=True), Count()]) as sinks:
+                ses = Session(rob, sinks,
+                              model_robot=model_robot, fd=use_fd, layout=layout, pipeline_factory=Pipeline,
+                              samples=samples)
+                known = set(ses.buses)
+                skipped: Counter[str] = Counter()
+                bar = _bar(progress, ctx, start_ns, end_ns, "replay")
+                frames = 0
+                first = last = None
+                last_bar = None
+                t0 = time.perf_counter()
 
-            def advanced(t_first: int, t_last: int) -> None:
-                """Frames up to log time ``t_last`` fed: the log's span so far, the progress bar."""
-                nonlocal first, last, last_bar
-                if first is None:
-                    first = last_bar = t_first
-                last = t_last
-                if bar is not None and last - last_bar >= 100_000_000:
-                    bar.update((last - last_bar) / 1e9)
-                    last_bar = last
+                def advanced(t_first: int, t_last: int) -> None:
+                    """Frames up to log time ``t_last`` fed: the log's span so far, the progress bar."""
+                    nonlocal first, last, last_bar
+                    if first is None:
+                        first = last_bar = t_first
+                    last = t_last
+                    if bar is not None and last - last_bar >= 100_000_000:
+                        bar.update((last - last_bar) / 1e9)
+                        last_bar = last
 
-            # rows straight from the chunks; copied frames need all of each record (its channel),
-            # which rows do not keep: then record by record
-            chunks = None if copy_can else mcap_frames(src, buses, start_ns=start_ns, end_ns=end_ns,
-                                                       can_ids=can_ids)
-            if chunks is not None:
-                chunks = read_ahead(chunks)
-                to_session = np.array([ses.buses.index(b) if b in known else -1 for b in buses], dtype=np.int64)
-                for chunk in chunks:
-                    idx = to_session[chunk.frames["bus"]]
-                    rows, log = chunk.frames, chunk.log_ns
-                    if (idx < 0).any():
-                        for b in np.unique(idx_bus := chunk.frames["bus"][idx < 0]).tolist():
-                            skipped[f"unknown_bus:{buses[b]}"] += int((idx_bus == b).sum())
-                        rows, log, idx = rows[idx >= 0], log[idx >= 0], idx[idx >= 0]
-                    if not len(rows):
-                        continue
-                    # copied as bytes: numpy copies a structured row field by field, 4x the time
-                    rows = rows.view(np.dtype((np.void, rows.dtype.itemsize))).copy().view(rows.dtype)
-                    rows["bus"] = idx
-                    ses.feed_frames(rows, log)
-                    frames += len(rows)
-                    advanced(int(log[0]), int(log[-1]))
-            else:                             # no summary, or frames copied: record by record
-                for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
-                                                   start_ns=start_ns, end_ns=end_ns):
-                    if bus not in known:
-                        skipped[f"unknown_bus:{bus}"] += 1
-                        continue
-                    ses.feed(bus, msg, log_ns=t)
-                    frames += 1
-                    advanced(t, t)
-            if bar is not None:
-                bar.close()
-            final = ses.close()              # end of input: epochs still waiting, last health
+                # rows straight from the chunks; copied frames need all of each record (its channel),
+                # which rows do not keep: then record by record
+                chunks = None if copy_can else mcap_frames(src, buses, start_ns=start_ns, end_ns=end_ns,
+                                                           can_ids=can_ids)
+                if chunks is not None:
+                    chunks = read_ahead(batched(chunks))     # merged in the reader's thread
+                    to_session = np.array([ses.buses.index(b) if b in known else -1 for b in buses], dtype=np.int64)
+                    for chunk in chunks:
+                        idx = to_session[chunk.frames["bus"]]
+                        rows, log = chunk.frames, chunk.log_ns
+                        if (idx < 0).any():
+                            for b in np.unique(idx_bus := chunk.frames["bus"][idx < 0]).tolist():
+                                skipped[f"unknown_bus:{buses[b]}"] += int((idx_bus == b).sum())
+                            rows, log, idx = rows[idx >= 0], log[idx >= 0], idx[idx >= 0]
+                        if not len(rows):
+                            continue
+                        # copied as bytes: numpy copies a structured row field by field, 4x the time
+                        rows = rows.view(np.dtype((np.void, rows.dtype.itemsize))).copy().view(rows.dtype)
+                        rows["bus"] = idx
+                        ses.feed_frames(rows, log)
+                        frames += len(rows)
+                        advanced(int(log[0]), int(log[-1]))
+                else:                             # no summary, or frames copied: record by record
+                    for bus, t, msg in iter_can_frames(src, buses=buses, can_ids=can_ids,
+                                                       start_ns=start_ns, end_ns=end_ns):
+                        if bus not in known:
+                            skipped[f"unknown_bus:{bus}"] += 1
+                            continue
+                        ses.feed(bus, msg, log_ns=t)
+                        frames += 1
+                        advanced(t, t)
+                if bar is not None:
+                    bar.close()
+                final = ses.close()              # end of input: epochs still waiting, last health
             rejections, per_device = _rejections(final)
             wall = time.perf_counter() - t0
         if frames == 0:

@@ -102,7 +102,7 @@ def _layout_and_robot(src: Path, robot_name: str | None = None):
 def _decode(src: Path, ctx, rob, layout):
     """Sample rows and effort rows of the log's raw frames, through a fresh Session."""
     from gateway.engine import Session, Sink
-    from gateway.log.frames import mcap_frames
+    from gateway.log.frames import batched, mcap_frames
     from gateway.log.reader import iter_can_frames
 
     samples: list[np.ndarray] = []
@@ -124,6 +124,7 @@ def _decode(src: Path, ctx, rob, layout):
         raise NoRawFrames(f"{src}: no raw CAN frames of the robot's buses to analyse for thruster faults")
     chunks = mcap_frames(src, buses)
     if chunks is not None:
+        chunks = batched(chunks)                 # fewer, larger calls; the same bits
         to_session = np.array([ses.buses.index(b) for b in buses], dtype=np.int64)
         for chunk in chunks:
             rows = chunk.frames.copy()

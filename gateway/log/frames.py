@@ -322,6 +322,38 @@ def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: 
     return gen()
 
 
+BATCH_FRAMES = 4096
+"""Frames per batch of :func:`batched`: a recorder's chunk holds about 250 frames, and every call
+into the drivers and the estimator, and every batch of output, has a fixed cost; merged to this
+size an offline replay ran 20 % faster (2026-11-26)."""
+
+
+def batched(chunks: Iterator[FrameChunk], min_frames: int = BATCH_FRAMES) -> Iterator[FrameChunk]:
+    """``chunks`` merged, in order, into batches of at least ``min_frames`` frames (the last one
+    may be smaller): the same frames with the same log times. The estimator gives the same bits
+    whatever the batch (its kernels run frame by frame), so this changes only how often Python
+    calls it."""
+    def merge(held: list[FrameChunk]) -> FrameChunk:
+        return held[0] if len(held) == 1 else FrameChunk(np.concatenate([h.frames for h in held]),
+                                                         np.concatenate([h.log_ns for h in held]))
+
+    held: list[FrameChunk] = []
+    n = 0
+    try:
+        for c in chunks:
+            held.append(c)
+            n += len(c.frames)
+            if n >= min_frames:
+                yield merge(held)
+                held, n = [], 0
+        if held:
+            yield merge(held)
+    finally:
+        close = getattr(chunks, "close", None)
+        if close is not None:
+            close()
+
+
 def read_ahead(chunks: Iterator[FrameChunk], depth: int = 8) -> Iterator[FrameChunk]:
     """``chunks`` read by a thread of their own, up to ``depth`` ahead of the consumer: reading
     (zstd, the chunk walk) releases the GIL, and so do the drivers' and estimator's kernels, so on

@@ -62,6 +62,16 @@ def test_replay_gives_the_same_efforts_and_alert(sessions, tmp_path):
     assert rep.check["ok"], rep.check
     assert rep.alerts == 1
 
+    def alerts(path):
+        from gateway.log.reader import iter_file_order
+
+        return [(t, m.log_time, bytes(m.data)) for t, _, m in iter_file_order(path, lambda t, s: t.endswith("/alerts"))]
+
+    # the same alert at the same log time (its epoch's): the replay feeds batches of thousands of
+    # frames, the live gateway a step's frames at a time
+    live = alerts(sessions["closed2"])
+    assert len(live) == 1 and alerts(tmp_path / "replay.mcap") == live
+
 
 def test_healthy_session_raises_and_flags_nothing(sessions):
     alerts, thr = _published(sessions["healthy"])

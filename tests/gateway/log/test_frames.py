@@ -121,3 +121,31 @@ def test_read_ahead_gives_the_same_chunks_and_the_reader_errors(log, tmp_path):
     next(it)
     it.close()                                           # joins the reader thread
     assert not any(t.name == "bsc-read-ahead" for t in threading.enumerate())
+
+
+def test_batched_merges_chunks_in_order_and_closes_its_source():
+    import numpy as np
+
+    from drivers.kernel import FRAME_DTYPE
+    from gateway.log.frames import FrameChunk, batched
+
+    closed = []
+
+    def source():
+        try:
+            for k in range(10):
+                rows = np.zeros(300 + k, dtype=FRAME_DTYPE)
+                rows["t_ns"] = np.arange(len(rows)) + 1000 * k
+                yield FrameChunk(rows, rows["t_ns"] + 7)
+        finally:
+            closed.append(True)
+
+    whole = list(source())
+    got = list(batched(source(), 1000))
+    assert [len(c.frames) for c in got] == [1206, 1222, 617]       # >= 1000 but the last
+    assert np.array_equal(np.concatenate([c.frames for c in got]), np.concatenate([c.frames for c in whole]))
+    assert np.array_equal(np.concatenate([c.log_ns for c in got]), np.concatenate([c.log_ns for c in whole]))
+    it = batched(source(), 1000)
+    next(it)
+    it.close()                                                      # a consumer that stops early
+    assert closed == [True, True, True]
