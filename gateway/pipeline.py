@@ -91,8 +91,6 @@ class Pipeline:
         # the valve wrenches taken in the current call (rows, each one's log time), out before its efforts
         self._valves = np.zeros(4, dtype=self.estimator.valve_dtype) if self.estimator is not None else None
         self._valves_log: list[int] = []
-        self._parts = np.zeros(64, dtype=self.estimator.dtype) if self.estimator is not None else None
-        self._row_bytes = np.dtype((np.void, self._parts.dtype.itemsize)) if self._parts is not None else None
         self._keys: dict = {}                    # (type, device or arm) -> zenoh key
         self.log_ns = 0
         self._unknown = 0
@@ -150,32 +148,17 @@ class Pipeline:
         est = self.estimator
         if est is not None:
             cuts = self._valve_cuts(events)
-            if len(cuts) == 1 and not self._cut_last:      # no valve wrenches to take here: one call
+            if not cuts:                                   # no valve wrenches to take here
                 rows = est.feed(events)
             else:
-                # fed up to each cut, the valve wrenches taken there; the efforts of every part go
-                # out together after them (one encoding of the batch: a part each costs a replay
-                # a third more time), gathered in a buffer of ours (the estimator's is the next
-                # call's), valid until our next call as the estimator's rows are until its
-                buf = self._parts
-                n = lo = 0
-                for hi in cuts:
-                    part = est.feed(events[lo:hi])
-                    m = len(part)
-                    if m:
-                        if n + m > len(buf):
-                            buf = self._parts = np.concatenate([buf[:n], np.zeros(max(n + m, 2 * len(buf)),
-                                                                                   dtype=buf.dtype)])
-                        # rows as bytes: a structured copy goes field by field, 6x the time
-                        buf[n:n + m].view(self._row_bytes)[:] = part.view(self._row_bytes)
-                        if lo:
-                            buf["cause"][n:n + m] += lo
-                        n += m
-                    if hi < len(events) or self._cut_last:
-                        last = self._last_epoch if n == 0 else (int(buf["t_ns"][n - 1]), buf["flags"][n - 1])
-                        self._valve_wrenches(int(t_frame[events["frame"][hi - 1]]), last)
-                    lo = hi
-                rows = buf[:n]
+                # the valve wrenches taken at each cut (after a valve command that opens a
+                # window) in the same compiled pass; they go out before the call's efforts (one
+                # encoding of the batch)
+                rows, n_at, snap_w, snap_s = est.feed_cuts(events, cuts)
+                frame_of = events["frame"]
+                for c, (hi, n) in enumerate(zip(cuts, n_at.tolist())):
+                    last = self._last_epoch if n == 0 else (int(rows["t_ns"][n - 1]), rows["flags"][n - 1])
+                    self._valve_wrenches(int(t_frame[frame_of[hi - 1]]), last, snap_w[c], snap_s[c])
                 if self._valves_log:
                     self._emit_valves()
             if len(rows):
@@ -198,13 +181,11 @@ class Pipeline:
                 self._thruster_alarms(alarms)
 
     def _valve_cuts(self, events: np.ndarray) -> list[int]:
-        """Where to stop feeding the estimator in ``events`` to take the valve wrenches: the index
-        after each valve command sample that opens a new window of :data:`VALVE_WRENCH_PERIOD_NS`,
-        then ``len(events)`` (:attr:`_cut_last`: whether that last one is such a stop too)."""
+        """Where to take the valve wrenches in ``events``: the index after each valve command
+        sample that opens a new window of :data:`VALVE_WRENCH_PERIOD_NS`."""
         v = np.flatnonzero(events["kind"] == VALVES)
-        self._cut_last = False
         if not len(v):
-            return [len(events)]
+            return []
         seen = self._valve_window                # the latest window opened, so far
         cuts = []
         for i, w in zip(v.tolist(), (events["t_ns"][v] // VALVE_WRENCH_PERIOD_NS).tolist()):
@@ -212,20 +193,22 @@ class Pipeline:
                 cuts.append(i + 1)
                 seen = w
         self._valve_window = seen
-        self._cut_last = bool(cuts) and cuts[-1] == len(events)
-        return cuts if self._cut_last else cuts + [len(events)]
+        return cuts
 
-    def _valve_wrenches(self, log_ns: int, last: tuple[int, np.ndarray] | None) -> None:
-        """Take the thruster filter's learned per-valve wrenches as of the latest epoch computed
-        (once per epoch; ``last``: its time and effort flags), for ``bsc/<robot>/efforts/valves``
-        at log time ``log_ns``: out with the others of the call (:meth:`_emit_valves`)."""
+    def _valve_wrenches(self, log_ns: int, last: tuple[int, np.ndarray] | None, wrench: np.ndarray,
+                        sigma: np.ndarray) -> None:
+        """Keep the thruster filter's learned per-valve wrenches ``wrench``, ``sigma`` (as
+        :meth:`EstimatorCore.valve_row` gives them) as of the latest epoch computed (once per
+        epoch; ``last``: its time and effort flags), for ``bsc/<robot>/efforts/valves`` at log time
+        ``log_ns``: out with the others of the call (:meth:`_emit_valves`)."""
         if last is None or last[0] == self._valves_t:
             return
         self._valves_t = last[0]
         k = len(self._valves_log)
         if k == len(self._valves):
             self._valves = np.concatenate([self._valves, np.zeros_like(self._valves)])
-        self.estimator.valve_row(self._valves, k)
+        self._valves["wrench"][k] = wrench
+        self._valves["force_sigma_n"][k] = sigma
         self._valves["t_ns"][k] = last[0]
         self._valves["flags"][k] = last[1]
         self._valves_log.append(log_ns)

@@ -417,7 +417,7 @@ def replay_offline(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]
                     bar.close()
                 final = ses.close()              # end of input: epochs still waiting, last health
             rejections, per_device = _rejections(final)
-            wall = time.perf_counter() - t0
+        wall = time.perf_counter() - t0              # the output written and closed too
         if frames == 0:
             out_path.unlink(missing_ok=True)
             raise ReplayError(f"{path}: no CAN frames match the filters / time window")

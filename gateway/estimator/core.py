@@ -684,6 +684,42 @@ def _feed_all(si: I64, cfg: I64, held: np.ndarray, samples: np.ndarray, ep_t: I6
 
 
 @_jit_alloc
+def feed_cuts_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, samples: np.ndarray,
+                     out: np.ndarray, cuts: I64, n_valves: int, n_at: I64, snap_w: F64, snap_s: F64) -> int:
+    """:func:`feed_kernel`, with the thruster filter's learned valve wrenches taken at each cut:
+    ``cuts`` ascending (a cut at i: after ``samples[:i]``); at cut c, ``n_at[c]`` the effort rows
+    written so far and row c of ``snap_w`` (cuts, 6 n) and ``snap_s`` (cuts, n) the filter's
+    wrenches (:func:`valve_state`). The same rows and state as one :func:`feed_kernel` call per
+    part (a row's ``cause`` counts from the first sample of all), in one call."""
+    si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
+    return _feed_cuts(si, cfg, held, samples, ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                      chain, tf, scratch, cuts, n_valves, n_at, snap_w, snap_s)
+
+
+@_jit
+def _feed_cuts(si: I64, cfg: I64, held: np.ndarray, samples: np.ndarray, ep_t: I64, ep_i: I64, ep_ft: F64,
+               ep_j: F64, pend: np.ndarray, out: np.ndarray, jstate: F64, jcmd: F64, jcmd_i: I64, thr_cmd: F64,
+               chain: Chain, tf: ThrusterArrays, scratch: Scratch, cuts: I64, n_valves: int, n_at: I64, snap_w: F64,
+               snap_s: F64) -> int:
+    """:func:`feed_cuts_kernel`'s loop on the state's views, without reference counting (as
+    :func:`_feed_all`)."""
+    si[_N_OUT] = 0
+    k = 0
+    for c in range(cuts.shape[0] + 1):
+        stop = cuts[c] if c < cuts.shape[0] else samples.shape[0]
+        while k < stop:
+            si[_CAUSE] = k
+            _feed_one(si, cfg, held, samples[k], ep_t, ep_i, ep_ft, ep_j, pend, out, jstate, jcmd, jcmd_i, thr_cmd,
+                      chain, tf, scratch)
+            k += 1
+        if c < cuts.shape[0]:
+            n_at[c] = si[_N_OUT]
+            valve_state(tf[0], tf[1], n_valves, snap_w, snap_s, c)
+    n_out: int = si[_N_OUT]
+    return n_out
+
+
+@_jit_alloc
 def flush_kernel(I: I64, F: F64, lay: I64, held: np.ndarray, pend: np.ndarray, out: np.ndarray) -> int:
     """End of input: every waiting epoch computed with what it has; returns the rows written."""
     si, cfg, ep_t, ep_i, jcmd_i, ep_ft, ep_j, jstate, jcmd, thr_cmd, chain, tf, scratch = _views(I, F, lay)
@@ -866,6 +902,20 @@ class EstimatorCore:
         self._reserve(len(samples))
         n = feed_kernel(self._I, self._F, self._lay, self._held, self._pend, samples, self._out)
         return self._out[:n]
+
+    def feed_cuts(self, samples: np.ndarray, cuts: Sequence[int]) -> tuple[np.ndarray, I64, F64, F64]:
+        """:meth:`feed`, taking the learned valve wrenches after ``samples[:i]`` for each ``i`` of
+        ``cuts`` (ascending): ``(rows, n_at, wrench, sigma)``, at cut c ``n_at[c]`` rows of
+        ``rows`` done and the filter's wrenches ``wrench[c]`` (6 n), ``sigma[c]`` (n), as
+        :meth:`valve_row` gives them then. One call where a call per part cost microseconds each."""
+        self._reserve(len(samples))
+        c = np.asarray(cuts, dtype=np.int64)
+        n = self.kf.n
+        n_at = np.empty(len(c), dtype=np.int64)
+        snap_w, snap_s = np.empty((len(c), 6 * n)), np.empty((len(c), n))
+        k = feed_cuts_kernel(self._I, self._F, self._lay, self._held, self._pend, samples, self._out, c, n, n_at,
+                             snap_w, snap_s)
+        return self._out[:k], n_at, snap_w, snap_s
 
     def flush(self) -> np.ndarray:
         """End of input: compute every waiting epoch with what it has (rows valid until the next call)."""
