@@ -450,27 +450,55 @@ class ValveJson(SampleJson):
         return [raw[o[k]:o[k + 1]] for k in range(len(rows))]
 
 
-@dataclasses.dataclass(frozen=True)
 class Encoded:
     """A batch of messages encoded into one buffer: message k goes on ``topics[which[k]]``
     (records of ``classes[which[k]]``), comes from row ``row[k]`` of the batch, and is
     ``data[offsets[k]:offsets[k + 1]]``; ``failed[k]``: a value was not finite, the payload is
-    empty and the message must be encoded from its object instead."""
+    empty and the message must be encoded from its object instead. ``per`` > 0: each row gives
+    ``per`` messages, one per topic in order (``which`` and ``row`` then follow, made when asked:
+    a live batch is a row or two, and two numpy calls would cost more than its messages). Valid
+    while the batch's rows are (the sinks of one batch; samples read their kinds and devices when asked)."""
 
-    topics: list[str]
-    classes: list[type]
-    which: np.ndarray
-    row: np.ndarray
-    data: np.ndarray
-    offsets: np.ndarray
-    failed: np.ndarray
+    __slots__ = ("topics", "classes", "data", "offsets", "failed", "per", "_which", "_row", "_events", "_base")
+
+    def __init__(self, topics: list[str], classes: list[type], data: np.ndarray, offsets: np.ndarray,
+                 failed: np.ndarray, *, per: int = 0, events: np.ndarray | None = None,
+                 base: np.ndarray | None = None):
+        self.topics, self.classes, self.data, self.offsets, self.failed = topics, classes, data, offsets, failed
+        self.per, self._events, self._base = per, events, base
+        self._which: np.ndarray | None = None
+        self._row: np.ndarray | None = None
+
+    @property
+    def which(self) -> np.ndarray:
+        if self._which is None:
+            if self.per:
+                self._which = np.tile(np.arange(self.per), len(self.failed) // self.per)
+            else:                                # samples: kind k's device d is topic base[k] + d
+                ev, base = self._events, self._base
+                assert ev is not None and base is not None
+                self._which = base[ev["kind"].astype(np.int64)] + ev["device"]
+        return self._which
+
+    @property
+    def row(self) -> np.ndarray:
+        if self._row is None:
+            n = len(self.failed)
+            self._row = np.repeat(np.arange(n // self.per), self.per) if self.per else np.arange(n)
+        return self._row
 
     def messages(self) -> list[tuple[str, type, bytes | None, int]]:
         """``(key, type, payload, row)`` per message (payload None: encode the row's object)."""
-        raw, o, failed = self.data.tobytes(), self.offsets.tolist(), self.failed.tolist()
-        topics, classes = self.topics, self.classes
-        return [(topics[w], classes[w], None if failed[k] else raw[o[k]:o[k + 1]], r)
-                for k, (w, r) in enumerate(zip(self.which.tolist(), self.row.tolist()))]
+        raw, o, failed = self.data.tobytes(), self.offsets.tolist(), self.failed
+        topics, classes, per = self.topics, self.classes, self.per
+        if per:
+            return [(topics[k % per], classes[k % per], None if failed[k] else raw[o[k]:o[k + 1]], k // per)
+                    for k in range(len(failed))]
+        ev, base = self._events, self._base
+        assert ev is not None and base is not None
+        b = base.tolist()
+        return [(topics[b[kd] + dv], classes[b[kd] + dv], None if failed[k] else raw[o[k]:o[k + 1]], k)
+                for k, (kd, dv) in enumerate(zip(ev["kind"].tolist(), ev["device"].tolist()))]
 
 
 class RowEncoders:
@@ -509,25 +537,21 @@ class RowEncoders:
     def sample_encoded(self, events: np.ndarray) -> Encoded:
         """Every event of a batch as its sample's JSON."""
         buf, off = self.samples.encode(events)
-        kinds = events["kind"].astype(np.int64)
-        return Encoded(self._sample_topics, self._sample_classes, self._sample_base[kinds] + events["device"],
-                       np.arange(len(events)), buf, off, self.samples.failed)
+        return Encoded(self._sample_topics, self._sample_classes, buf, off, self.samples.failed, events=events,
+                       base=self._sample_base)
 
     def effort_encoded(self, rows: np.ndarray) -> Encoded:
         """Every effort row as its messages, in :meth:`EstimatorCore.efforts` order (one
         :class:`JointEfforts` per arm, then the :class:`ThrusterEffort`)."""
         enc = self.efforts
         buf, off = enc.encode(rows)
-        per, n = enc.per_row, len(rows)
-        return Encoded(self.effort_key, self.effort_type, np.tile(np.arange(per), n),
-                       np.repeat(np.arange(n), per), buf, off, enc.failed)
+        return Encoded(self.effort_key, self.effort_type, buf, off, enc.failed, per=enc.per_row)
 
     def valve_encoded(self, rows: np.ndarray) -> Encoded:
         """Every valve row as its :class:`ValveWrenches` message."""
         enc = self.valves
         buf, off = enc.encode(rows)
-        return Encoded([self.valve_key], [ValveWrenches], np.zeros(len(rows), dtype=np.int64),
-                       np.arange(len(rows)), buf, off, enc.failed)
+        return Encoded([self.valve_key], [ValveWrenches], buf, off, enc.failed, per=1)
 
     def sample_messages(self, events: np.ndarray) -> list[tuple[str, type, bytes | None, int]]:
         """``(key, type, payload, k)`` per event (payload None: not finite, encode event ``k``'s object)."""
