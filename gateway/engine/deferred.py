@@ -30,10 +30,6 @@ from .session import Sink
 _METHODS = ("sample_rows", "effort_rows", "valve_rows", "sample_events", "frame", "frames", "emit")
 
 
-class SinkThreadError(RuntimeError):
-    """The writer thread stopped on an error (the ``__cause__``); nothing more was written."""
-
-
 def _own(a):
     """``a`` if it is not an array, else a copy the caller may keep: a contiguous structured row
     array copied as bytes (numpy copies a structured array field by field, several times slower)."""
@@ -54,6 +50,7 @@ class _Writer:
         self.batch = batch
         self.pending: list = []
         self.error: BaseException | None = None
+        self.stopped = False                  # after an error: nothing more is written
         self.thread = threading.Thread(target=self._run, name="bsc-sink-writer", daemon=True)
         self.thread.start()
 
@@ -62,7 +59,7 @@ class _Writer:
             calls = self.q.get()
             if calls is None:
                 return
-            if self.error is not None:       # stopped: drain without writing, so put never blocks
+            if self.error is not None or self.stopped:   # drain without writing, so put never blocks
                 continue
             try:
                 for sink, name, args in calls:
@@ -71,8 +68,14 @@ class _Writer:
                 self.error = exc
 
     def check(self) -> None:
-        if self.error is not None:
-            raise SinkThreadError(f"a sink failed in the writer thread: {self.error}") from self.error
+        """Raise the writer's error here, in the session's thread, as it is (its type is what a
+        caller handles: a recorder's ``RecorderError`` stays one), once."""
+        exc = self.error
+        if exc is not None:
+            self.stopped = True               # before the error is taken: the thread writes nothing more
+            self.error = None
+            exc.add_note("(raised in the writer thread of the session's sinks, gateway/engine/deferred.py)")
+            raise exc
 
     def put(self, sink: Sink, name: str, args: tuple) -> None:
         self.pending.append((sink, name, args))
@@ -118,8 +121,8 @@ def _stand_type(cls: type) -> type:
 @contextmanager
 def deferred(sinks: Sequence[Sink], depth: int = 8, batch: int = 64) -> Iterator[list[Sink]]:
     """Stand-ins for ``sinks`` whose calls a writer thread makes on the real ones, in order. On
-    leaving the block every queued call has been made (the writer's error, if any, raised as
-    :class:`SinkThreadError`); the rows attribute of each stand-in is its sink's."""
+    leaving the block every queued call has been made (the writer's error, if any, raised); the
+    rows attribute of each stand-in is its sink's."""
     writer = _Writer(depth, batch)
     stands = []
     for s in sinks:

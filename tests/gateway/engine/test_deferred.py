@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gateway.engine import Session, Sink
-from gateway.engine.deferred import SinkThreadError, deferred
+from gateway.engine.deferred import deferred
 from gateway.engine.sinks import RecorderSink
 
 
@@ -96,10 +96,19 @@ def test_a_sink_error_reaches_the_session_thread():
         def emit(self, key, obj, log_ns):
             raise OSError("disk full")
 
-    with pytest.raises(SinkThreadError, match="disk full"):
-        with deferred([Broken()], batch=1) as (stand,):
+    written = []
+
+    class Later(Sink):
+        def emit(self, key, obj, log_ns):
+            written.append(obj)
+
+    with pytest.raises(OSError, match="disk full") as err:      # its own type: what callers handle
+        with deferred([Broken(), Later()], batch=1) as (stand, later):
             for k in range(1000):
                 stand.emit("k", k, k)
+                later.emit("k", k, k)
+    assert any("writer thread" in n for n in err.value.__notes__)
+    assert len(written) < 1000                                  # it stopped: nothing more written
 
 
 def test_a_recorder_behind_a_writer_thread_writes_what_it_writes_directly(frames, tmp_path):

@@ -835,3 +835,18 @@ def test_several_can_logs_are_replayed_one_at_a_time(tmp_path, capsys):
     assert main(["replay", *map(str, logs), "--out", str(tmp_path / "o"), "--robot", ROBOT,
                  "--bus", "arm0=can0"]) == 2
     assert "CAN logs replay one at a time (or `bsc import` each" in capsys.readouterr().err
+
+
+def test_a_full_disk_stops_a_replay_with_the_recorders_error(robot, tmp_path, tiny_fs):
+    """The output is written by a thread of its own (gateway/engine/deferred.py): a disk that
+    fills up still stops the replay with the recorder's own error, in the caller's thread, and
+    leaves no complete-looking output."""
+    pipeline = pytest.importorskip("gateway.pipeline")
+    from gateway.log.recorder import RecorderError
+
+    path = tmp_path / "live.mcap"
+    record_live(path, robot, synthetic_frames(robot, 3000, seed=3), pipeline.Pipeline)
+    with pytest.raises((RecorderError, OSError)) as err:
+        rp.replay_offline(path, tiny_fs / "out", samples=True)
+    assert "No space left" in str(err.value) or "ENOSPC" in str(err.value) or err.value.errno == 28
+    assert not (tiny_fs / "out" / rp.OUTPUT_NAME).exists()
