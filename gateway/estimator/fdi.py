@@ -846,15 +846,27 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     fbase = _fault_base(n)
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
+        if st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK and st[o + _F_A] > 0.0:
+            # a leak is a wrench along the valve's nominal one whenever it is closed, always for a
+            # valve that never fires: the bias states (not published) learn it as well as its
+            # size does. Their part along the leak's wrench is the leak's: moved onto its size
+            # (its least squares' B), so the published wrench carries it
+            j = int(st[o + _F_HYP]) // 2
+            dot = 0.0
+            for q in range(6):
+                dot += x[6 * n + q] * Wnom[j, q]
+            d = dot / (_norm2(Wnom, j, 0) + _norm2(Wnom, j, 3))
+            for q in range(6):
+                x[6 * n + q] -= d * Wnom[j, q]
+            st[o + _F_B] += d * st[o + _F_A]
+            continue
         if st[o + _F_STAGE] == TO_CLEAR and st[o + _F_TYPE] == PARTIAL_LOSS:
             # the lost part back on the valve's learned wrench, and room to refine it
             j = int(st[o + _F_HYP]) // 2
             theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
-            f2 = _norm2(Wnom, j, 0)
-            t2 = _norm2(Wnom, j, 3)
             for q in range(6):
                 x[6 * j + q] += theta * Wnom[j, q]
-                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            _inflate_along(P, Wnom, j, 0)
             st[o + _F_STAGE] = CLEARED_STAGE
             continue
         if st[o + _F_STAGE] == TO_CLEAR:
@@ -873,11 +885,10 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             continue
         if int(st[o + _F_HYP]) >= 2 * n:
             # a misalignment: the tilt measured while it was confirmed onto the valve's learned
-            # wrench, and room to refine it (its force and moment variances grow)
+            # wrench, and room to refine its two angles (rank two, along the tilt's columns)
             j = int(st[o + _F_HYP]) - 2 * n
             p1, p2, _ = _tilt_solve(st, o + _F_T11, 1)
             f2 = _norm2(Wnom, j, 0)
-            t2 = _norm2(Wnom, j, 3)
             # the signatures are of nominal thrust: the angle is the thrust turned across over the
             # thrust the valve really gives (its learned wrench along nominal), on its alarm row
             along = 0.0
@@ -890,7 +901,8 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
                 st[q0 + 3] = math.degrees(math.asin(min(1.0, math.sqrt(p1 * p1 + p2 * p2) / along)))
             for q in range(6):
                 x[6 * j + q] += p1 * Wnom[j, 6 + q] + p2 * Wnom[j, 12 + q]
-                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            _inflate_along(P, Wnom, j, 6)          # room to refine the two angles (radians), no more
+            _inflate_along(P, Wnom, j, 12)
             st[o + _F_STAGE] = IN_FILTER
             continue
         j = int(st[o + _F_HYP]) // 2
