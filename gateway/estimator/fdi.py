@@ -846,20 +846,6 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     fbase = _fault_base(n)
     for f in range(int(st[_S_NFAULTS])):
         o = fbase + _NF * f
-        if st[o + _F_STAGE] == IN_FILTER and st[o + _F_TYPE] == LEAK and st[o + _F_A] > 0.0:
-            # a leak is a wrench along the valve's nominal one whenever it is closed, always for a
-            # valve that never fires: the bias states (not published) learn it as well as its
-            # size does. Their part along the leak's wrench is the leak's: moved onto its size
-            # (its least squares' B), so the published wrench carries it
-            j = int(st[o + _F_HYP]) // 2
-            dot = 0.0
-            for q in range(6):
-                dot += x[6 * n + q] * Wnom[j, q]
-            d = dot / (_norm2(Wnom, j, 0) + _norm2(Wnom, j, 3))
-            for q in range(6):
-                x[6 * n + q] -= d * Wnom[j, q]
-            st[o + _F_B] += d * st[o + _F_A]
-            continue
         if st[o + _F_STAGE] == TO_CLEAR and st[o + _F_TYPE] == PARTIAL_LOSS:
             # the lost part back on the valve's learned wrench, and room to refine it
             j = int(st[o + _F_HYP]) // 2
