@@ -20,5 +20,8 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # below its smallest size dismissed (gateway/estimator/fdi.py); the thruster command's keep-out
 # mask (ThrusterCommand.allowed, drivers). Healthy sessions: the same bits as 4. 6: a thruster's
 # misalignment change (a tilt of its thrust) a hypothesis of the fault detector, named and put into
-# the thruster filter (gateway/estimator/fdi.py).
-KERNELS = "6"
+# the thruster filter (gateway/estimator/fdi.py). 7: a confirmed partial loss put into the thruster
+# filter with room to refine its size only (rank one along the valve's nominal wrench), not its
+# direction and moment arm; a misalignment its two angles only (gateway/estimator/fdi.py). Healthy
+# sessions and those without a partial loss or a misalignment named: the same bits as 6.
+KERNELS = "7"

@@ -816,9 +816,25 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
 
 
 @_jit
+def _inflate_along(P: F64, Wnom: F64, j: int, c0: int) -> None:
+    """Room for valve ``j``'s learned wrench to refine along one direction of the signature table
+    (``Wnom[j, c0:c0 + 6]``: its nominal wrench, a change of its thrust; a tilt's column): ``P``'s
+    valve block gains ``RELEARN_SIGMA^2 w w^T``, rank one, so the filter refines the fault's size
+    and not the valve's direction or moment arm, which the fault leaves as they were. Bitwise
+    symmetric: ``w_q w_r`` and ``w_r w_q`` are the same product."""
+    s2 = RELEARN_SIGMA * RELEARN_SIGMA
+    for q in range(6):
+        for r in range(6):
+            P[6 * j + q, 6 * j + r] += s2 * (Wnom[j, c0 + q] * Wnom[j, c0 + r])
+
+
+@_jit
 def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
     """Put confirmed faults into the filter. A partial loss: the valve's learned wrench less the
-    lost part, and room to refine it (its diagonal of P grows; P stays bitwise symmetric). A
+    lost part, and room to refine the loss's size (:func:`_inflate_along`: along the valve's nominal
+    wrench only; P stays bitwise symmetric). Until 2026-11-26 its whole diagonal grew, and the filter
+    then traded the valve's force for its moments through the accelerometer's lever arm (thruster 2,
+    10 % loss: mx 4 N m off for 1.5 s after the alarm, 7.4 % against 4.6 %). A
     stuck-open valve (modelled open through :func:`valve_mask`): its learned wrench scaled to the
     size measured while it was confirmed (always open, its wrench can no longer be told from the
     bias states, and a valve that had never fired still holds the nominal prior). A stuck-closed
@@ -834,11 +850,9 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             # the lost part back on the valve's learned wrench, and room to refine it
             j = int(st[o + _F_HYP]) // 2
             theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
-            f2 = _norm2(Wnom, j, 0)
-            t2 = _norm2(Wnom, j, 3)
             for q in range(6):
                 x[6 * j + q] += theta * Wnom[j, q]
-                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            _inflate_along(P, Wnom, j, 0)
             st[o + _F_STAGE] = CLEARED_STAGE
             continue
         if st[o + _F_STAGE] == TO_CLEAR:
@@ -857,11 +871,10 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             continue
         if int(st[o + _F_HYP]) >= 2 * n:
             # a misalignment: the tilt measured while it was confirmed onto the valve's learned
-            # wrench, and room to refine it (its force and moment variances grow)
+            # wrench, and room to refine its two angles (rank two, along the tilt's columns)
             j = int(st[o + _F_HYP]) - 2 * n
             p1, p2, _ = _tilt_solve(st, o + _F_T11, 1)
             f2 = _norm2(Wnom, j, 0)
-            t2 = _norm2(Wnom, j, 3)
             # the signatures are of nominal thrust: the angle is the thrust turned across over the
             # thrust the valve really gives (its learned wrench along nominal), on its alarm row
             along = 0.0
@@ -874,13 +887,13 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
                 st[q0 + 3] = math.degrees(math.asin(min(1.0, math.sqrt(p1 * p1 + p2 * p2) / along)))
             for q in range(6):
                 x[6 * j + q] += p1 * Wnom[j, 6 + q] + p2 * Wnom[j, 12 + q]
-                P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+            _inflate_along(P, Wnom, j, 6)          # room to refine the two angles (radians), no more
+            _inflate_along(P, Wnom, j, 12)
             st[o + _F_STAGE] = IN_FILTER
             continue
         j = int(st[o + _F_HYP]) // 2
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
         f2 = _norm2(Wnom, j, 0)
-        t2 = _norm2(Wnom, j, 3)
         st[o + _F_STAGE] = IN_FILTER
         if int(st[o + _F_HYP]) % 2 == OPEN:
             along = 0.0                       # the learned wrench's thrust along nominal, of nominal
@@ -893,7 +906,7 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             continue
         for q in range(6):
             x[6 * j + q] -= theta * Wnom[j, q]
-            P[6 * j + q, 6 * j + q] += RELEARN_SIGMA * RELEARN_SIGMA * (f2 if q < 3 else t2)
+        _inflate_along(P, Wnom, j, 0)
 
 
 @_jit
