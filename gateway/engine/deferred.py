@@ -107,15 +107,11 @@ def _queued(name: str):
     return call
 
 
-_TYPES: dict[type, type] = {}
-
-
 def _stand_type(cls: type) -> type:
-    t = _TYPES.get(cls)
-    if t is None:
-        ns: dict = {name: _queued(name) for name in _METHODS if getattr(cls, name) is not getattr(Sink, name)}
-        t = _TYPES[cls] = type(f"Deferred{cls.__name__}", (_Stand,), ns)
-    return t
+    """The stand-in type of a sink type: the same methods overridden. Made per use, not cached: a
+    sink type may be local to a call (a replay's counter), and a cache would keep each one."""
+    ns: dict = {name: _queued(name) for name in _METHODS if getattr(cls, name) is not getattr(Sink, name)}
+    return type(f"Deferred{cls.__name__}", (_Stand,), ns)
 
 
 @contextmanager
