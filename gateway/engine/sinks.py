@@ -88,22 +88,21 @@ class RecorderSink(Sink):
                      lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
 
     def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record_encoded(session, session.effort_encoded, rows, log_ns,
-                             lambda i: session.encoders().effort_object(rows, i))
+        self._record_rows(session.effort_encoded, session.effort_messages, rows, log_ns,
+                          lambda i: session.encoders().effort_object(rows, i))
 
     def valve_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
-        self._record_encoded(session, session.valve_encoded, rows, log_ns,
-                             lambda i: session.encoders().valve_object(rows, i))
+        self._record_rows(session.valve_encoded, session.valve_messages, rows, log_ns,
+                          lambda i: session.encoders().valve_object(rows, i))
 
-    def _record_encoded(self, session, encoded, rows: np.ndarray, log_ns: np.ndarray, object_of) -> None:
+    def _record_rows(self, encoded, messages, rows: np.ndarray, log_ns: np.ndarray, object_of) -> None:
         """Offline (a replay, a simulated series), a batch as one block of records (no Python
         step per message, here or in the recorder's thread); live, and with a value that is not
         finite in it, message by message (a live batch is an epoch or two: a block gains nothing)."""
-        enc = encoded(rows)
         block = getattr(self.recorder, "record_encoded_block", None) if self.offline else None
-        if block is None or enc.failed.any():
-            kind = encoded.__name__.replace("_encoded", "_messages")
-            self._record(getattr(session, kind)(rows), log_ns, object_of)
+        enc = encoded(rows) if block is not None else None
+        if enc is None or enc.failed.any():
+            self._record(messages(rows), log_ns, object_of)
             return
         n = len(enc.which)
         refused = block(enc.topics, enc.classes, enc.which, enc.data, enc.offsets, log_ns[enc.row])
