@@ -82,10 +82,8 @@ class RecorderSink(Sink):
 
     # rows (``rows=True``): the records written straight from them (encoded once by the session)
     def sample_rows(self, session, events: np.ndarray, log_ns: np.ndarray) -> None:
-        # message by message: as blocks, the live gateway in the SocketCAN VM died of SIGSEGV in the
-        # recorder's thread (2026-11-26, not understood yet; efforts and valve wrenches as blocks ran)
-        self._record(session.sample_messages(events), log_ns,
-                     lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
+        self._record_rows(session.sample_encoded, session.sample_messages, events, log_ns,
+                          lambda i: session.pipeline.drivers.to_samples(events[i:i + 1])[0])
 
     def effort_rows(self, session, rows: np.ndarray, log_ns: np.ndarray) -> None:
         self._record_rows(session.effort_encoded, session.effort_messages, rows, log_ns,
