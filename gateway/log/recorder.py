@@ -767,12 +767,25 @@ class Recorder:
     def _flush_chunk(self) -> None:
         if self._pending_msgs == 0:
             return
-        self._writer.end_chunk()          # writes the chunk and its indexes
+        self._in_chunks(self._writer.end_chunk)   # writes the chunk and its indexes
         self._stream.flush()
-        self._flushed += self._pending_msgs
-        self._chunks += 1
         self._pending_msgs = 0
         self._pending_bytes = 0
+
+    def _in_chunks(self, write) -> None:
+        """``write()`` (an end of chunk, the end of the file), counting the messages of the chunks it
+        wrote as flushed, also when it fails after a chunk record (on the index records that follow
+        it, say at a full disk): those messages are in the file."""
+        w = self._writer
+        before = w.messages_in_chunks
+        try:
+            write()
+        finally:
+            done = w.messages_in_chunks - before
+            if done:
+                self._flushed += done
+                self._pending_msgs -= done       # in the file: not dropped if what follows fails
+                self._chunks += 1
 
     def _rotate(self) -> None:
         self._finish(final=False)
@@ -783,10 +796,7 @@ class Recorder:
         if self._writer is None or self._error is not None:
             return
         try:
-            pending = self._pending_msgs
-            self._writer.finish()
-            self._flushed += pending
-            self._chunks += 1 if pending else 0
+            self._in_chunks(self._writer.finish)
             self._pending_msgs = self._pending_bytes = 0
             self._bytes_done += self._stream.tell()
             self._stream.close(sync=True)

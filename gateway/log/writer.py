@@ -96,6 +96,7 @@ class McapWriter:
         self._index: dict[int, list[tuple[int, int]]] = {}
         self._blocks: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}   # add_messages' (times, offsets)
         self._chunk_messages = 0
+        self.messages_in_chunks = 0                     # messages of the chunk records written so far
         self._chunk_start = self._chunk_end = 0
 
     # --- the file's start and its definitions
@@ -215,6 +216,9 @@ class McapWriter:
         chunk.write(self._rb)
         length = self._rb.count
         self._flush_records()
+        # its messages are in the file now, whatever happens to the index records that follow
+        # (a reader without them, or `bsc recover`, still finds them in the chunk)
+        self.messages_in_chunks += self._chunk_messages
         index_start = self._stream.tell()
         offsets = {}
         for cid, records in self._index.items():

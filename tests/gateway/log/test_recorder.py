@@ -299,10 +299,44 @@ def test_full_disk_keeps_what_was_written(tiny_fs):
             recovered += report.messages
         except errors.McapFileError:
             pass                               # the disk filled before the header was written
-    # Everything counted as flushed is back. The chunk in flight when the disk filled is counted
-    # as dropped; it comes back too if the chunk record itself was complete (only its index or
-    # the summary failed), hence <= written rather than == flushed.
-    assert stats.flushed <= recovered <= stats.written
+    # Everything counted as flushed is back, and nothing else: the chunk in flight when the disk
+    # filled counts as flushed when its chunk record was complete (only its index or the summary
+    # failed: recover finds it), as dropped otherwise
+    assert stats.flushed == recovered <= stats.written
+
+
+def test_a_chunk_written_before_its_index_failed_counts_as_in_the_file(tmp_path, monkeypatch):
+    """The disk fills on a chunk's message index, right after the chunk record: the chunk's
+    messages are in the file (recover finds them), so the recorder counts them flushed, not dropped."""
+    import errno
+
+    from gateway.log import recorder as recorder_module
+
+    real_write, indexes = recorder_module._FdStream.write, [0]
+
+    def write(self, data):
+        if bytes(data[:1]) == b"\x07":                     # a MessageIndex record (opcode 0x07)
+            indexes[0] += 1
+            if indexes[0] == 3:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, data)
+
+    monkeypatch.setattr(recorder_module._FdStream, "write", write)
+    path = tmp_path / "idx.mcap"
+    rec = Recorder(path, chunk_size=4096, compression="none")
+    i = 0
+    while rec.error is None and i < 20_000:
+        rec.record_can("ft0", _frame(i, data=i.to_bytes(8, "little")))
+        i += 1
+        if i % 100 == 0:
+            rec.flush(10)
+    with pytest.raises(RecorderError, match="No space left on device"):
+        rec.close()
+    stats = rec.stats
+    report = scan.recover(path, tmp_path / "fixed.mcap")
+    assert stats.flushed == report.messages > 0
+    assert stats.chunks == 3                                # the third chunk's index failed
+    assert stats.received == stats.flushed + stats.dropped_write_error   # nothing counted twice
 
 
 def test_many_producer_threads_lose_nothing(tmp_path):
