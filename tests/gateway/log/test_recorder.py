@@ -270,18 +270,25 @@ def test_read_only_directory_fails_clearly_at_open(read_only_dir):
     assert "x.mcap" in str(err.value)
 
 
+def _record_until_full(rec: Recorder, limit: int, flush_every: int) -> int:
+    """Frames into ``rec`` until it fails (or ``limit``), then its close raises the full disk;
+    returns the number of frames offered."""
+    i = 0
+    while rec.error is None and i < limit:
+        rec.record_can("ft0", _frame(i, data=i.to_bytes(8, "little")))
+        i += 1
+        if i % flush_every == 0:
+            rec.flush(10)
+    with pytest.raises(RecorderError, match="No space left on device"):
+        rec.close()
+    return i
+
+
 def test_full_disk_keeps_what_was_written(tiny_fs):
     rec = Recorder(tiny_fs / "full.mcap", chunk_size=4096, rotate_bytes=32768,
                    compression="none")
     rec.add_attachment("robot.urdf", "application/xml", b"<robot/>" * 100)
-    i = 0
-    while rec.error is None and i < 200_000:
-        rec.record_can("ft0", _frame(i, data=i.to_bytes(8, "little")))
-        i += 1
-        if i % 500 == 0:
-            rec.flush(10)
-    with pytest.raises(RecorderError, match="No space left on device"):
-        rec.close()
+    i = _record_until_full(rec, 200_000, flush_every=500)
     rec.close()                                # twice: harmless, no second raise
     stats = rec.stats
     assert stats.dropped_write_error > 0 and stats.written + stats.dropped_queue_full <= i
@@ -324,14 +331,7 @@ def test_a_chunk_written_before_its_index_failed_counts_as_in_the_file(tmp_path,
     monkeypatch.setattr(recorder_module._FdStream, "write", write)
     path = tmp_path / "idx.mcap"
     rec = Recorder(path, chunk_size=4096, compression="none")
-    i = 0
-    while rec.error is None and i < 20_000:
-        rec.record_can("ft0", _frame(i, data=i.to_bytes(8, "little")))
-        i += 1
-        if i % 100 == 0:
-            rec.flush(10)
-    with pytest.raises(RecorderError, match="No space left on device"):
-        rec.close()
+    _record_until_full(rec, 20_000, flush_every=100)
     stats = rec.stats
     report = scan.recover(path, tmp_path / "fixed.mcap")
     assert stats.flushed == report.messages > 0
