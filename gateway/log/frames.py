@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import json
 import struct
-import zlib
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
+from isal.isal_zlib import crc32   # CRC-32 as zlib computes it, about 6x faster (ISA-L)
 import numpy as np
 from numba import njit
 
@@ -284,7 +284,7 @@ def mcap_frames(path, buses: list[str], *, start_ns: int | None = None, end_ns: 
                     raise corrupt(exc) from None
                 if data is None:
                     raise corrupt(f"chunk compression {comp!r} is not supported")
-                if len(data) != size or (crc and zlib.crc32(data) != crc):
+                if len(data) != size or (crc and crc32(data) != crc):
                     raise corrupt("chunk CRC or size mismatch")
                 d = np.frombuffer(data, dtype=np.uint8)
                 if size // 31 + 1 > cap:                      # at most one message per 31 bytes

@@ -23,10 +23,11 @@ import json
 import os
 import struct
 import tempfile
-import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
+
+from isal.isal_zlib import crc32   # CRC-32 as zlib computes it, about 6x faster (ISA-L)
 
 from gateway.log.canframe import can_frame_from_json, can_frame_from_record
 from gateway.log.errors import LogError, McapFileError
@@ -96,7 +97,7 @@ def _chunk_messages(chunk, chans: Mapping[int, Any]) -> list[tuple[int, int, byt
     if len(data) != chunk.uncompressed_size:
         raise ValueError(f"chunk decompressed to {len(data)} bytes, "
                          f"{chunk.uncompressed_size} announced")
-    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+    if chunk.uncompressed_crc and crc32(data) != chunk.uncompressed_crc:
         raise ValueError("chunk CRC mismatch")
     out = []
     append = out.append

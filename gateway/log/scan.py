@@ -21,11 +21,11 @@ import io
 import json
 import os
 import struct
-import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from isal.isal_zlib import crc32   # CRC-32 as zlib computes it, about 6x faster (ISA-L)
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import (Attachment, Channel, Chunk, DataEnd, Footer, Header, Message,
@@ -339,7 +339,7 @@ def check_footer(path: str | os.PathLike[str]) -> tuple[bool, str]:
         if crc:
             f.seek(summary_start)
             covered = f.read(footer_at + _FOOTER_SIZE - 4 - summary_start)
-            if zlib.crc32(covered) != crc:
+            if crc32(covered) != crc:
                 return False, "summary CRC mismatch"
         return True, ""
 
