@@ -107,11 +107,13 @@ def _queued(name: str):
     return call
 
 
-def _stand_type(cls: type) -> type:
-    """The stand-in type of a sink type: the same methods overridden. Made per use, not cached: a
-    sink type may be local to a call (a replay's counter), and a cache would keep each one."""
-    ns: dict = {name: _queued(name) for name in _METHODS if getattr(cls, name) is not getattr(Sink, name)}
-    return type(f"Deferred{cls.__name__}", (_Stand,), ns)
+def _stand_type(real: Sink) -> type:
+    """The stand-in type of a sink: the methods it takes (:meth:`Sink.takes`) overridden, so the
+    session calls the stand-in for those only and nothing is copied for a call the sink would
+    ignore. Made per use, not cached: a sink type may be local to a call (a replay's counter), and
+    a cache would keep each one."""
+    ns: dict = {name: _queued(name) for name in _METHODS if real.takes(name)}
+    return type(f"Deferred{type(real).__name__}", (_Stand,), ns)
 
 
 @contextmanager
@@ -122,7 +124,7 @@ def deferred(sinks: Sequence[Sink], depth: int = 8, batch: int = 64) -> Iterator
     writer = _Writer(depth, batch)
     stands = []
     for s in sinks:
-        st = _stand_type(type(s))(s, writer)
+        st = _stand_type(s)(s, writer)
         st.rows = s.rows
         stands.append(st)
     try:

@@ -66,6 +66,12 @@ class Sink:
     def emit(self, key: str, obj, log_ns: int) -> None:
         """A decoded sample, an effort or a health snapshot, under its zenoh key."""
 
+    def takes(self, method: str) -> bool:
+        """Whether this sink does something with calls of ``method`` (one of the methods above):
+        by default, whether its type overrides it. A session makes no call, and builds nothing,
+        for a sink that does not take it (a recorder told not to record the raw frames)."""
+        return getattr(type(self), method) is not getattr(Sink, method)
+
 
 class Session:
     """The pipeline of one robot between a source of frames and ``sinks``.
@@ -104,10 +110,11 @@ class Session:
     def _sorted(self) -> None:
         self._row_sinks = [s for s in self.sinks if s.rows]
         self._object_sinks = [s for s in self.sinks if not s.rows]
-        self._valve_row_sinks = [s for s in self._row_sinks if type(s).valve_rows is not Sink.valve_rows]
+        self._valve_row_sinks = [s for s in self._row_sinks if s.takes("valve_rows")]
         self._valve_object_sinks = [s for s in self.sinks if s not in self._valve_row_sinks]
-        self._frame_sinks = [s for s in self.sinks if type(s).frame is not Sink.frame]
-        self._event_sinks = [s for s in self.sinks if type(s).sample_events is not Sink.sample_events]
+        self._frame_sinks = [s for s in self.sinks if s.takes("frame")]
+        self._frames_sinks = [s for s in self.sinks if s.takes("frames")]
+        self._event_sinks = [s for s in self.sinks if s.takes("sample_events")]
         if getattr(self, "pipeline", None) is not None:      # a sink added later: the rows it needs
             self.pipeline.emit_samples = self.samples or bool(self._event_sinks)
 
@@ -247,7 +254,7 @@ class Session:
             return
         if log_ns is None:
             log_ns = frames["t_ns"] + self.log_offset_ns
-        for s in self.sinks:
+        for s in self._frames_sinks:
             s.frames(self.buses, frames, log_ns)
         self.pipeline.feed_frames(frames, log_ns=log_ns)
         self._after(int(frames["t_ns"][-1]), int(log_ns[-1]))

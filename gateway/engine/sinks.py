@@ -34,6 +34,14 @@ class RecorderSink(Sink):
         self.channels = dict(channels or {})    # bus -> its channel, recorded with frames given as rows
         self._n = 0
 
+    def takes(self, method: str) -> bool:
+        """Raw frames only when told to record them, sample events only for the frame tree."""
+        if method in ("frame", "frames"):
+            return self.record_frames
+        if method == "sample_events":
+            return self.transforms
+        return super().takes(method)
+
     def _put(self, ok: bool, what: str, n: int = 1) -> None:
         if self.offline:
             if not ok:
