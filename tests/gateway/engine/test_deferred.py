@@ -130,3 +130,41 @@ def test_a_recorder_behind_a_writer_thread_writes_what_it_writes_directly(frames
 
     a, b = record(tmp_path / "direct.mcap", False), record(tmp_path / "deferred.mcap", True)
     assert a == b and any("/efforts/" in t for t in a)
+
+
+def test_a_call_a_sink_does_not_take_is_neither_made_nor_copied():
+    """A recorder told not to record raw frames (a replay's) takes no frames and, without the
+    frame tree, no sample events: its stand-in has neither, so the session makes no such call and
+    the writer copies nothing for it. Told to, it takes them."""
+    from gateway.engine.deferred import _stand_type
+
+    quiet = RecorderSink(object(), frames=False, transforms=False, rows=True, offline=True)
+    full = RecorderSink(object(), frames=True, transforms=True, rows=True, offline=True)
+    for name in ("frame", "frames", "sample_events"):
+        assert not quiet.takes(name) and full.takes(name)
+        assert name not in vars(_stand_type(quiet)) and name in vars(_stand_type(full))
+    for name in ("sample_rows", "effort_rows", "valve_rows", "emit"):
+        assert quiet.takes(name) and name in vars(_stand_type(quiet))
+    assert not Sink().takes("frames") and not Objects().takes("frames") and Objects().takes("emit")
+
+
+def test_the_session_calls_frames_only_on_sinks_that_take_them(frames):
+    class Counting(Sink):
+        def __init__(self, take):
+            self.take, self.n = take, 0
+
+        def frames(self, buses, rows, log_ns):
+            self.n += len(rows)
+
+        def takes(self, method):
+            return self.take if method == "frames" else super().takes(method)
+
+    yes, no = Counting(True), Counting(False)
+    import robot_description
+
+    with Session(robot_description.load(None), [yes, no]) as ses:
+        from drivers.kernel import columns_from_messages
+
+        rows = columns_from_messages([(ses.buses.index(b), m) for b, m in frames[:500]])
+        ses.feed_frames(rows)
+    assert yes.n == 500 and no.n == 0
