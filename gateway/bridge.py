@@ -811,11 +811,14 @@ class GatewayService:
                 if w is not None:
                     got += receive(*w, ev)
             if backlog:
-                # the poll is a moment old: a bus with nothing queued may have received since, and
-                # its frames can be earlier than what was just read from another bus, so read it
-                # now (non-blocking) before merging
+                # the poll is a moment old: any bus may have received since, and its frames can be
+                # earlier than what was just read from another bus (they were sent before it), so
+                # read every bus now (non-blocking) before merging. Reading only the buses with
+                # nothing queued left a race: a bus whose queue ran empty in the merge, its next
+                # frames already in its socket, let another bus's later frames through first
+                # (seen once in a suite run under load, 2026-11-26)
                 for name, fd in list(fd_of.items()):
-                    if not backlog.waiting(name) and fd in watched:
+                    if fd in watched:
                         receive(*watched[fd], 0)
                 rows = backlog.take(DIRECT_BATCH)             # stops where a bus must be read first
                 if len(rows):
