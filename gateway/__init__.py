@@ -23,5 +23,8 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # the thruster filter (gateway/estimator/fdi.py). 7: a confirmed partial loss put into the thruster
 # filter with room to refine its size only (rank one along the valve's nominal wrench), not its
 # direction and moment arm; a misalignment its two angles only (gateway/estimator/fdi.py). Healthy
-# sessions and those without a partial loss or a misalignment named: the same bits as 6.
-KERNELS = "7"
+# sessions and those without a partial loss or a misalignment named: the same bits as 6. 8: the
+# contact test learns the model's relative error from the arm's motion (floor 1 %) and leaves
+# contact on a leaky count (gateway/estimator/joint_filter.py). Sessions where no contact is
+# flagged: the same bits as 7.
+KERNELS = "8"

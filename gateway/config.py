@@ -269,7 +269,10 @@ DOCS = {
     "estimator.joints.contact_window_s": "time constant of the averaged residual (and the window of each verdict), s",
     "estimator.joints.contact_floor_n": "what the model misses in the averaged residual, force, 1 sigma, N",
     "estimator.joints.contact_floor_nm": "the same, moment, N m",
-    "estimator.joints.contact_model_error": "the model wrench's relative error a contact must stand out of",
+    "estimator.joints.contact_model_error": "the model wrench's relative error a contact must stand out of, until "
+                                            "the arm's motion out of contact has taught it",
+    "estimator.joints.contact_model_error_min": "the least relative error of the model wrench the contact test "
+                                                "learns",
     "estimator.joints.contact_walk_n": "how fast a contact force may change, random walk, N per sqrt(s)",
     "estimator.joints.contact_walk_nm": "the same, moment, N m per sqrt(s)",
     "estimator.fdi": "The thruster fault detector (docs/fdi.md); fdi = false in [estimator] turns it off.",

@@ -46,9 +46,11 @@ of every joint would miss it. The test compares the sensor with the encoders, in
 the filter: the residual ``ft - w0 - b_ref - J (rate - rate_prev) / dt`` (the accelerations from
 the encoders' rate differences, the bias ``b_ref`` a slow average of the filter's over quiet
 time), averaged over ``contact_window_s``, against its noise (the encoders' through ``J``, the
-F/T sensor's, a floor, and ``contact_model_error`` of the model wrench) and against its own usual
-size over the last seconds out of contact (sensors noisier than the settings say raise it
-everywhere; a contact raises it above its past). A residual that stands out
+F/T sensor's, a floor, and the model's relative error times the model wrench) and against its own
+usual size over the last seconds out of contact (sensors noisier than the settings say raise it
+everywhere; a contact raises it above its past). The model's relative error is learned out of
+contact (:func:`_learn_model_error`): ``contact_model_error`` until the arm's motion teaches it,
+never below ``contact_model_error_min``. A residual that stands out
 (``contact_significance``) for a window, and means more than ``contact_force_n`` or
 ``contact_moment_nm`` at the end effector, starts a contact: the state gains
 
@@ -82,8 +84,8 @@ MAX_STATE = 2 * 6 + 12          # [dq, ddq, b, e] of an arm of at most chain_ker
 # the constants array (JointFilterSettings.constants)
 C_ON, C_JERK, C_WALK_F, C_WALK_T, C_RATE_VAR, C_FORCE_VAR, C_TORQUE_VAR, C_ACC0_VAR, C_BIAS0_F, C_BIAS0_T, \
     C_MAX_DT, C_MODEL, C_CONTACT, C_ON_F, C_ON_T, C_WINDOW, C_EWALK_F, C_EWALK_T, C_CHI, C_FLOOR_F, C_FLOOR_T, \
-    C_CMODEL = range(22)
-N_CONST = 22
+    C_CMODEL, C_CMODEL_MIN = range(23)
+N_CONST = 23
 # h, P h; the arm's D (n, n) and A_tau (n, 6) for the fusion; E_i; G (6, 6): the sensor wrench of a
 # unit contact wrench; three unit forces carried from the end effector to C; the end effector from C
 SCRATCH_ROWS = 3 + 2 * 6 + 6 + 3 + 1 + 6
@@ -111,10 +113,14 @@ S_RING_T = MAX_STATE + 85        # seconds into the current window of the bias c
 S_RING_OK = MAX_STATE + 86       # 1: every epoch of the current window has been quiet
 S_RING = MAX_STATE + 87          # (RING x 6) the bias at the end of the last RING quiet windows, newest first
 RING = 4
-ROW = MAX_STATE + 87 + 6 * RING
+S_EPS = MAX_STATE + 87 + 6 * RING  # (4) the model error's averages: force excess, force model^2, moment the same
+ROW = S_EPS + 4
 CHI_MEMORY = 40.0
 TIMER_GAIN = 5.0
 B_MEMORY = 10.0
+EPS_MEMORY = 40.0                # windows of memory of the learned model error
+EPS_PRIOR_N = 20.0               # the prior model error weighs as much as a model force of this length, N,
+EPS_PRIOR_NM = 20.0              # and a model moment of this length, N m
 
 
 @dataclass(frozen=True)
@@ -144,7 +150,9 @@ class JointFilterSettings:
     contact_window_s: float = 0.05     # time constant of the averaged residual, s
     contact_floor_n: float = 0.3       # what the model misses in the averaged residual, force, 1 sigma, N
     contact_floor_nm: float = 0.3      # the same, moment, N m
-    contact_model_error: float = 0.03  # and the model's relative error in its wrench (a contact must stand out of it)
+    contact_model_error: float = 0.03  # and the model's relative error in its wrench, until learned (a contact must
+    #                                    stand out of it)
+    contact_model_error_min: float = 0.01  # the least relative error it learns (from the arm's motion out of contact)
     contact_walk_n: float = 5.0        # how fast a contact force changes, random walk, N per sqrt(s)
     contact_walk_nm: float = 1.0       # the same, moment, N m per sqrt(s)
 
@@ -180,6 +188,7 @@ class JointFilterSettings:
         c[C_FLOOR_F] = self.contact_floor_n ** 2
         c[C_FLOOR_T] = self.contact_floor_nm ** 2
         c[C_CMODEL] = self.contact_model_error ** 2
+        c[C_CMODEL_MIN] = self.contact_model_error_min ** 2
         c[C_ON_F] = self.contact_force_n
         c[C_ON_T] = self.contact_moment_nm
         c[C_WINDOW] = self.contact_window_s
@@ -317,7 +326,8 @@ def contact_test(st: F64, P: F64, n: int, dt: float, W: F64, ft: F64, ft_ok: boo
     (``S_WRENCH``: body axes, moment about the end effector ``pe``, m from C; ``sr`` the sensor's
     placement). Out of contact, significant (``C_CHI``) and big (above ``C_ON_F`` or ``C_ON_T``)
     for a window in all (a leaky count): a contact begins (:func:`_enter`). In contact, below a
-    quarter of ``C_CHI`` or half of both sizes for a window: it ends (:func:`_leave`). The bias
+    quarter of ``C_CHI`` or half of both sizes for a window in all (a leaky count): it ends
+    (:func:`_leave`). The bias
     reference ``S_B_QUIET`` follows the filter's bias over quiet epochs only. An epoch with a
     sample missing, here or in the last epoch, adds nothing."""
     ok = st[S_HAVE_PREV] != 0.0
@@ -350,6 +360,8 @@ def contact_test(st: F64, P: F64, n: int, dt: float, W: F64, ft: F64, ft_ok: boo
         big = f > c[C_ON_F] or m > c[C_ON_T]
         if st[S_AVG_T] >= 3.0 * c[C_WINDOW]:
             if st[S_MODE] == 0.0:
+                if not (big and chi > c[C_CHI]):
+                    _learn_model_error(st, n, a, dt, c)
                 if big and chi > c[C_CHI]:
                     # out of contact: how long the residual has stood out, the faster the further
                     # (up to TIMER_GAIN times: a knock far out of the noise is flagged sooner)
@@ -371,6 +383,8 @@ def contact_test(st: F64, P: F64, n: int, dt: float, W: F64, ft: F64, ft_ok: boo
                 st[S_TIMER] += dt
                 if st[S_TIMER] >= c[C_WINDOW]:
                     _leave(st, P, n)
+            elif st[S_TIMER] > dt:             # a leaky count, as for a contact's beginning
+                st[S_TIMER] -= dt
             else:
                 st[S_TIMER] = 0.0
         else:
@@ -470,12 +484,59 @@ def _contact_wrench(sr: F64, pe: F64, res: F64, w: F64) -> None:
 
 
 @_jit
+def _model_error(st: F64, c: F64, k: int) -> float:
+    """The model's squared relative error, force (``k`` 0) or moment (``k`` 2): what the arm's
+    motion has taught (:func:`_learn_model_error`), with the prior ``C_CMODEL`` worth a model
+    wrench of ``EPS_PRIOR_*``, never below ``C_CMODEL_MIN``."""
+    w = EPS_PRIOR_N * EPS_PRIOR_N if k == 0 else EPS_PRIOR_NM * EPS_PRIOR_NM
+    e: float = (st[S_EPS + k] + w * c[C_CMODEL]) / (st[S_EPS + k + 1] + w)
+    floor: float = c[C_CMODEL_MIN]
+    return e if e > floor else floor
+
+
+@_jit
+def _learn_model_error(st: F64, n: int, a: float, dt: float, c: F64) -> None:
+    """Out of contact, unless the residual stands out: the averaged residual's squared length per
+    axis beyond what the sensors explain, and the model wrench's squared length, each averaged over
+    ``EPS_MEMORY`` windows, force and moment apart. Their ratio is the model's squared relative
+    error (:func:`_model_error`): a model a few percent off leaves a residual in proportion to the
+    model wrench, an exact one only the sensors' noise. Learned rather than assumed, the error of
+    an exact model lets a contact on a fast-moving arm stand out of a residual of its true size."""
+    vr = c[C_RATE_VAR] * (a / dt) * (a / dt)
+    nf = 3.0 * (a / (2.0 - a) * c[C_FORCE_VAR] + c[C_FLOOR_F])
+    nt = 3.0 * (a / (2.0 - a) * c[C_TORQUE_VAR] + c[C_FLOOR_T])
+    rf = 0.0
+    rt = 0.0
+    mf = 0.0
+    mt = 0.0
+    for r in range(6):
+        acc = 0.0
+        for k in range(n):
+            acc += st[S_PREV_J + 6 * r + k] * st[S_PREV_J + 6 * r + k]
+        x = st[S_RES + r]
+        y = st[S_PREV_M + r]
+        if r < 3:
+            nf += vr * acc
+            rf += x * x
+            mf += y * y
+        else:
+            nt += vr * acc
+            rt += x * x
+            mt += y * y
+    g = a / EPS_MEMORY
+    st[S_EPS] += g * ((rf - nf) / 3.0 - st[S_EPS])
+    st[S_EPS + 1] += g * (mf - st[S_EPS + 1])
+    st[S_EPS + 2] += g * ((rt - nt) / 3.0 - st[S_EPS + 2])
+    st[S_EPS + 3] += g * (mt - st[S_EPS + 3])
+
+
+@_jit
 def _significance(st: F64, n: int, a: float, dt: float, c: F64, S: F64) -> float:
     """``r^T S^-1 r`` of the averaged residual ``r`` (``st[S_RES:]``) and its covariance ``S``
     under no contact: the encoder rates' noise through the last epoch's ``J``, ``(sigma_rate
     a / dt)^2 J J^T`` (the average of rate differences keeps a fraction ``a`` of one sample's
     noise); the F/T noise, ``a / (2 - a) sigma^2``; a floor; and the model's error, a fraction
-    ``C_CMODEL`` of the model wrench's force and moment lengths on every force and moment axis
+    (:func:`_model_error`) of the model wrench's force and moment lengths on every force and moment axis
     (a few percent off on each body moves a wrench between axes: the sensor wrench is a small sum
     of large terms). Cholesky in place (``S``: (6, 7) scratch, the last column the solve's)."""
     vr = c[C_RATE_VAR] * (a / dt) * (a / dt)
@@ -484,6 +545,8 @@ def _significance(st: F64, n: int, a: float, dt: float, c: F64, S: F64) -> float
     for r in range(3):
         mf += st[S_PREV_M + r] * st[S_PREV_M + r]
         mt += st[S_PREV_M + 3 + r] * st[S_PREV_M + 3 + r]
+    mf *= _model_error(st, c, 0)
+    mt *= _model_error(st, c, 2)
     for r in range(6):
         for q in range(r + 1):
             acc = 0.0
@@ -491,9 +554,9 @@ def _significance(st: F64, n: int, a: float, dt: float, c: F64, S: F64) -> float
                 acc += st[S_PREV_J + 6 * r + k] * st[S_PREV_J + 6 * q + k]
             S[r, q] = vr * acc
         if r < 3:
-            S[r, r] += a / (2.0 - a) * c[C_FORCE_VAR] + c[C_FLOOR_F] + c[C_CMODEL] * mf
+            S[r, r] += a / (2.0 - a) * c[C_FORCE_VAR] + c[C_FLOOR_F] + mf
         else:
-            S[r, r] += a / (2.0 - a) * c[C_TORQUE_VAR] + c[C_FLOOR_T] + c[C_CMODEL] * mt
+            S[r, r] += a / (2.0 - a) * c[C_TORQUE_VAR] + c[C_FLOOR_T] + mt
     for r in range(6):                       # lower Cholesky factor
         for q in range(r + 1):
             acc = S[r, q]
