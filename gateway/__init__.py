@@ -25,6 +25,7 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # direction and moment arm; a misalignment its two angles only (gateway/estimator/fdi.py). Healthy
 # sessions and those without a partial loss or a misalignment named: the same bits as 6. 8: the
 # contact test learns the model's relative error from the arm's motion (floor 1 %) and leaves
-# contact on a leaky count (gateway/estimator/joint_filter.py). Sessions where no contact is
-# flagged: the same bits as 7.
+# contact on a leaky count; no contact begins while the thruster fault detector suspects a fault
+# (gateway/estimator/joint_filter.py, core.py). Sessions where no contact is flagged: the same bits
+# as 7.
 KERNELS = "8"

@@ -512,6 +512,11 @@ def _compute(si: I64, cfg: I64, et: I64, ei: I64, eft: F64, ej: F64, pend: np.nd
             if rate_ok[j] == 0:
                 ft_ok[a] = 0
     mask = ei[1] if ei[0] != 0 else 0
+    # a thruster fault suspected: the base motion is in doubt, and with it every arm's model wrench
+    # (the joint filter's contact test holds; docs/estimator.md, 2c)
+    hold = 1.0 if cfg[13] != 0 and fd.learning(scratch[3]) == 0.0 else 0.0
+    for a in range(p):
+        jfs[0][a, jf.S_HOLD] = hold
     if cfg[13] != 0:                       # the faults found so far: stuck valves as they are
         mask = fd.valve_mask(scratch[3], mask)
         if fd.unresolved(scratch[3]):

@@ -114,10 +114,13 @@ S_RING_OK = MAX_STATE + 86       # 1: every epoch of the current window has been
 S_RING = MAX_STATE + 87          # (RING x 6) the bias at the end of the last RING quiet windows, newest first
 RING = 4
 S_EPS = MAX_STATE + 87 + 6 * RING  # (4) the model error's averages: force excess, force model^2, moment the same
-ROW = S_EPS + 4
+S_HOLD = S_EPS + 4               # 1: the base motion is in doubt this epoch (the caller's: a thruster fault suspected)
+S_DOUBT = S_EPS + 5              # seconds the test still holds after the doubt (until the residual is back)
+ROW = S_EPS + 6
 CHI_MEMORY = 40.0
 TIMER_GAIN = 5.0
 B_MEMORY = 10.0
+DOUBT_WINDOWS = 4.0              # the longest hold after the base motion was in doubt, windows
 EPS_MEMORY = 40.0                # windows of memory of the learned model error
 EPS_PRIOR_N = 20.0               # the prior model error weighs as much as a model force of this length, N,
 EPS_PRIOR_NM = 20.0              # and a model moment of this length, N m
@@ -325,7 +328,9 @@ def contact_test(st: F64, P: F64, n: int, dt: float, W: F64, ft: F64, ft_ok: boo
     (:func:`_significance`, ``S_CHI``) and carried to the end effector as a wrench on it
     (``S_WRENCH``: body axes, moment about the end effector ``pe``, m from C; ``sr`` the sensor's
     placement). Out of contact, significant (``C_CHI``) and big (above ``C_ON_F`` or ``C_ON_T``)
-    for a window in all (a leaky count): a contact begins (:func:`_enter`). In contact, below a
+    for a window in all (a leaky count): a contact begins (:func:`_enter`); not while ``S_HOLD``
+    (the caller's: the base motion in doubt) nor after it until the residual is back below
+    ``C_CHI`` (at most ``DOUBT_WINDOWS`` windows): the count runs down and nothing is learned. In contact, below a
     quarter of ``C_CHI`` or half of both sizes for a window in all (a leaky count): it ends
     (:func:`_leave`). The bias
     reference ``S_B_QUIET`` follows the filter's bias over quiet epochs only. An epoch with a
@@ -355,14 +360,25 @@ def contact_test(st: F64, P: F64, n: int, dt: float, W: F64, ft: F64, ft_ok: boo
         if scale > 1.0:
             chi /= scale
         st[S_CHI] = chi
-        if st[S_MODE] == 0.0 and chi < c[C_CHI]:
+        # the base motion in doubt (an unexplained wrench on the spacecraft: the model's inertial
+        # wrench of the arm is off on every arm at once): no contact begins, nothing is learned;
+        # after it, until the averaged residual is back below the significance (at most
+        # DOUBT_WINDOWS windows: what still stands out then is the arm's)
+        if st[S_HOLD] != 0.0:
+            st[S_DOUBT] = DOUBT_WINDOWS * c[C_WINDOW]
+        elif chi < c[C_CHI] or st[S_DOUBT] <= dt:
+            st[S_DOUBT] = 0.0
+        else:
+            st[S_DOUBT] -= dt
+        held = st[S_HOLD] != 0.0 or st[S_DOUBT] > 0.0
+        if st[S_MODE] == 0.0 and chi < c[C_CHI] and not held:
             st[S_CHI_AVG] += a / CHI_MEMORY * (chi * (scale if scale > 1.0 else 1.0) - st[S_CHI_AVG])
         big = f > c[C_ON_F] or m > c[C_ON_T]
         if st[S_AVG_T] >= 3.0 * c[C_WINDOW]:
             if st[S_MODE] == 0.0:
-                if not (big and chi > c[C_CHI]):
+                if not (big and chi > c[C_CHI]) and not held:
                     _learn_model_error(st, n, a, dt, c)
-                if big and chi > c[C_CHI]:
+                if big and chi > c[C_CHI] and not held:
                     # out of contact: how long the residual has stood out, the faster the further
                     # (up to TIMER_GAIN times: a knock far out of the noise is flagged sooner)
                     g = chi / c[C_CHI]

@@ -126,6 +126,24 @@ def test_a_knock_on_a_fast_arm_stands_out_of_the_model_error_the_test_learned():
     assert fixed["flagged_after_s"] is None or fixed["flagged_after_s"] > 0.15, fixed
 
 
+def test_a_thruster_stuck_open_is_not_a_contact(tmp_path):
+    """A thruster stuck open pushes the spacecraft with a wrench the model does not know, so every
+    arm's model wrench is off at once (measured: the residual's significance in the thousands on
+    both of capture's arms). While the thruster fault detector suspects a fault, and after it until
+    the residual is back, no contact begins; without the detector (nothing to say the base motion
+    is in doubt) the same session flags contacts."""
+    from harness.fdi import FaultCase
+
+    case = FaultCase(thruster=0, fault="stuck_open", onset_s=3.0, duration_s=3.6)
+    path = tmp_path / "stuck.toml"
+    path.write_text(case.toml())
+    sc = scenario.load(str(path))
+    _, est, _ = demo.run_offline(sc)
+    assert np.isnan(est.contact).all()
+    _, blind, _ = demo.run_offline(scenario.load(str(path)), settings=CoreSettings(fdi=None))
+    assert not np.isnan(blind.contact).all()
+
+
 @pytest.mark.parametrize("case", ["capture", "three_arm", "capture noise x4", "capture 5 % wrong model"])
 def test_no_contact_where_there_is_none(case):
     """Healthy sessions: no arm is ever in contact, with the nominal sensors, four times their
