@@ -483,11 +483,14 @@ class _Inbox:
 
     def __init__(self, session, key: str, decode):
         import threading
+        import time
 
-        self.received = self.rejected = 0
+        self.received = self.rejected = self.after_end = 0
         self.delays_ns: list[int] = []
         self._decode = decode
         self._lock = threading.Lock()
+        self._ended = False
+        self._last = time.monotonic()
         self._sub = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample) -> None:
@@ -504,10 +507,30 @@ class _Inbox:
             return
         with self._lock:
             self.received += 1
+            self._last = time.monotonic()
+            if self._ended:                  # after the robot's last step: counted, not applied
+                self.after_end += 1
+                return
             self._take(cmd, now)
 
     def _take(self, cmd, now_ns: int) -> None:
         raise NotImplementedError
+
+    def end(self) -> None:
+        """The robot's last step has gone out: what arrives from now on is counted in
+        ``after_end`` (a loop that fell behind still answers every step it saw)."""
+        import time
+
+        with self._lock:
+            self._ended = True
+            self._last = time.monotonic()    # quiet is measured from here on
+
+    def quiet_for(self) -> float:
+        """Seconds since the last arrival (or since the subscription, before any)."""
+        import time
+
+        with self._lock:
+            return time.monotonic() - self._last
 
     def close(self) -> None:
         self._sub.undeclare()
@@ -576,7 +599,8 @@ class DriveInbox(_Inbox):
 
     def summary(self) -> dict:
         return {"received": self.received, "rejected": self.rejected, "max_age_us": self.max_age_ns / 1e3,
-                "arm_steps_applied": dict(self.steps), "desired_frame_to_drive_command_us": self._delays()}
+                "after_end": self.after_end, "arm_steps_applied": dict(self.steps),
+                "desired_frame_to_drive_command_us": self._delays()}
 
 
 class ValveInbox(_Inbox):
@@ -648,8 +672,9 @@ class ValveInbox(_Inbox):
             pending = len(self.pending)
         return {"received": self.received, "rejected": self.rejected, "too_old": self.too_old,
                 "applied": self.applied, "max_age_us": self.max_age_ns / 1e3,
-                # arrived after the last step went out (not applied), or dated before step 0
-                "pending_at_end": pending, "before_start": self.before_start,
+                # arrived before the last step went out but not applied by then, after it (the
+                # loop behind), or dated before step 0
+                "pending_at_end": pending, "after_end": self.after_end, "before_start": self.before_start,
                 "steps_external": int(sim.valves_external.sum()), "steps": int(sim.k),
                 "rows_late": int(sim.valves_late), "keep_out_closed": self.keep_out_closed,
                 "first_step_to_arrival_us": delays}
@@ -758,6 +783,15 @@ def run_realtime(scenario_name: str, workdir, *, duration_s: float | None = None
     import json
 
     summary = json.loads((out / "summary.json").read_text())["can"]
+    # what bsc control sent, from its last line: every command should reach the robot (in time or not)
+    import re
+
+    said = ends[1][1] if len(ends) > 1 else ""
+    m = re.search(r"drive commands out: (\d+) closed loop, (\d+) open loop"
+                  r"(?:; valve commands out: (\d+) on learned wrenches, (\d+) on nominal ones)?", said)
+    if m:
+        summary["control_sent"] = {"drives": int(m[1]) + int(m[2]),
+                                   "valves": int(m[3]) + int(m[4]) if m[3] is not None else 0}
     return Trace.load(out / "truth.npz"), summary
 
 

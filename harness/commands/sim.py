@@ -262,6 +262,10 @@ def _run_on_can(args: argparse.Namespace, sc, sim):
                    **inboxes}
 
 
+DRAIN_QUIET_S = 0.5      # after the run: the commands still arriving from a loop that fell behind
+DRAIN_MAX_S = 10.0
+
+
 def _run_closed_loop(args: argparse.Namespace, sim, buses, fw):
     """Real time with the drives and/or the valves on zenoh (harness.closed_loop.DriveInbox,
     ValveInbox): starts once bsc control subscribes to the efforts, computes each step just before
@@ -294,6 +298,13 @@ def _run_closed_loop(args: argparse.Namespace, sim, buses, fw):
 
             trace = firmware.run_on_buses(sim, buses, firmware=fw, realtime=True, progress=not args.quiet,
                                           on_step=on_step, lookahead_steps=1, compute_lead_s=args.compute_lead)
+            # a loop that fell behind still answers the steps it saw: count those answers too, until
+            # none came for DRAIN_QUIET_S (at most DRAIN_MAX_S)
+            for box in inboxes.values():
+                box.end()
+            t_end = time.monotonic() + DRAIN_MAX_S
+            while time.monotonic() < t_end and min(b.quiet_for() for b in inboxes.values()) < DRAIN_QUIET_S:
+                time.sleep(0.05)
         finally:
             for box in inboxes.values():
                 box.close()
