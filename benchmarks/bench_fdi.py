@@ -12,10 +12,12 @@ repeatable):
   the onset in >= 95 % of runs (stuck closed: of the runs where the thruster is commanded in the
   0.5 s after the onset; one never commanded does nothing a sensor could see);
 - partial loss of 10 %, 15 %, 20 % and 30 % of the thrust: every thruster, onset uniform in
-  [2, 3] s, 8 s sessions (the capture task's length: 5-6 s after the onset; the issue's
-  "within 10 s" cannot be reached in these sessions), judged on the thrusters that fired before
-  the onset and were commanded after it (within one session a loss is a change of what the valve
-  delivered; a valve that never fired before has nothing to compare with);
+  [2, 3] s, session onset + :data:`LOSS_WINDOW_S` (10 s: the target is a loss named within 10 s;
+  the capture task's spacecraft keeps manoeuvring after its 8 s), judged on the thrusters that
+  fired before the onset and were commanded after it (within one session a loss is a change of
+  what the valve delivered; a valve that never fired before has nothing to compare with). Until
+  2026-11-27 these sessions lasted 8 s, 5-6 s after the onset: thruster 3, commanded after the
+  onset only in the last 0.12 s, was counted missed at every size;
 - leak of 10 %, 20 % and 30 % of the thrust (a closed valve that still thrusts): every thruster,
   onset uniform in [2, 3] s, 8 s sessions, judged on every thruster (a leak shows whenever the
   valve is closed); its size is the thrust delivered closed, of nominal;
@@ -56,6 +58,7 @@ import numpy as np  # noqa: E402
 
 LOSS_SIZES = (0.10, 0.15, 0.20, 0.30)
 LEAK_SIZES = (0.10, 0.20, 0.30)
+LOSS_WINDOW_S = 10.0         # a partial loss: named within this of its onset (the target)
 MISALIGN_DEG = (10.0, 20.0)
 MISALIGN_DUTY = 0.05
 EARLY_S = 1.5                # an onset before this: a fault in the filter's first convergence
@@ -84,7 +87,8 @@ def family(quick: bool = False, seed: int = 2026) -> list:
     for size in sizes:
         for j in thrusters:
             onset = round(float(rng.uniform(2.0, 3.0)), 3)
-            cases.append(FaultCase("capture", 100 + k, 8.0, j, "loss", onset, round(1.0 - size, 3)))
+            cases.append(FaultCase("capture", 100 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
+                                   round(1.0 - size, 3)))
             k += 1
     for size in (0.30,) if quick else LEAK_SIZES:
         for j in thrusters:
@@ -270,8 +274,9 @@ def summarise(verdicts: list[dict]) -> dict:
             judged = v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"])
         else:
             judged = True
+        in_time = v["named"] and (c["fault"] != "loss" or v["delay_s"] <= LOSS_WINDOW_S)
         out["per_thruster"].setdefault(str(c["thruster"]), {})[key] = (
-            f"{v['delay_s']:.2f} s" if v["named"] else ("missed" if judged else "-"))
+            f"{v['delay_s']:.2f} s" if in_time else ("missed" if judged else "-"))
     sizes = sorted({round(1 - v["case"]["factor"], 3) for v in verdicts if v["case"]["fault"] == "loss"})
     for size in sizes:
         vs = [v for v in verdicts if v["case"]["fault"] == "loss" and round(1 - v["case"]["factor"], 3) == size]
@@ -279,14 +284,14 @@ def summarise(verdicts: list[dict]) -> dict:
         # what the valve delivered before: judged where it fired before the onset (the truth's
         # size is known) and was commanded after it
         judged = [v for v in vs if v["named"] or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))]
-        ok = [v for v in judged if v["named"]]
+        ok = [v for v in judged if v["named"] and v["delay_s"] <= LOSS_WINDOW_S]
         out["loss"][f"{size:.2f}"] = {
             "runs": len(vs), "judged": len(judged), "named": len(ok),
             "rate": len(ok) / len(judged) if judged else float("nan"),
             "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
             "theta_err_max": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
             "wrong_alarms": sum(v["false_alarms"] for v in vs),
-            "missed": sorted(v["case"]["thruster"] for v in judged if not v["named"]),
+            "missed": sorted(v["case"]["thruster"] for v in judged if v not in ok),
             "nrmse_published_median": _med([v["nrmse_published"] for v in ok]),
             "nrmse_published_max": _max([v["nrmse_published"] for v in ok]),
             "nrmse_oracle_median": _med([v.get("nrmse_oracle", float("nan")) for v in ok]),
@@ -345,7 +350,7 @@ def figures(quick: bool = False) -> list[dict]:
                              f"median {100 * d['nrmse_oracle_median']:.1f} %, max "
                              f"{100 * d['nrmse_oracle_max']:.1f} %"))
     for size, d in s["loss"].items():
-        rows.append(row(f"partial loss {float(size):.0%}: named within the session", 100 * d["rate"],
+        rows.append(row(f"partial loss {float(size):.0%}: named within {LOSS_WINDOW_S:g} s", 100 * d["rate"],
                         "% of judged runs", target=">= 95 %" if float(size) >= 0.15 else None,
                         ok=(d["rate"] >= TARGET_RATE) if float(size) >= 0.15 else None,
                         note=_named_note(d, f"size error max {d['theta_err_max']:.3f}")))

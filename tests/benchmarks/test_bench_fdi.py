@@ -21,6 +21,8 @@ def test_family_covers_every_thruster_and_fault():
     for size in bench_fdi.LOSS_SIZES:
         got = [c for c in cases if c.fault == "loss" and c.factor == pytest.approx(1 - size)]
         assert sorted(c.thruster for c in got) == list(range(n))
+        # the target is a loss named within 10 s of its onset: the session lasts that long
+        assert all(c.duration_s == pytest.approx(c.onset_s + bench_fdi.LOSS_WINDOW_S) for c in got)
     for size in bench_fdi.LEAK_SIZES:
         got = [c for c in cases if c.fault == "leak" and c.factor == pytest.approx(size)]
         assert sorted(c.thruster for c in got) == list(range(n)) and all(2.0 <= c.onset_s <= 3.0 for c in got)
@@ -44,7 +46,7 @@ def test_summary_counts_what_the_targets_count():
     vs = [_v("stuck_open", 0), _v("stuck_open", 1, delay=0.7), _v("stuck_open", 2, named=False, false=1),
           _v("stuck_closed", 0), _v("stuck_closed", 1, named=False, duty=0.0),
           _v("loss", 3, factor=0.85, delay=1.5), _v("loss", 4, factor=0.85, named=False, duty=0.0),
-          _v("loss", 5, factor=0.85, named=False),
+          _v("loss", 5, factor=0.85, named=False), _v("loss", 9, factor=0.85, delay=10.5),
           {**_v("loss", 6, factor=0.85, named=False), "theta_true": float("nan")},
           _v("leak", 7, factor=0.2, delay=0.8), _v("leak", 8, factor=0.2, named=False, false=1),
           _v(None, None, named=False, false=0), _v(None, None, named=False, false=2, scenario="three_arm")]
@@ -55,7 +57,7 @@ def test_summary_counts_what_the_targets_count():
     sc = s["stuck"]["stuck_closed"]
     assert (sc["judged"], sc["named_in_time"], sc["never_commanded"]) == (1, 1, [1]) and sc["rate"] == 1.0
     loss = s["loss"]["0.15"]
-    assert (loss["judged"], loss["named"], loss["missed"]) == (2, 1, [5]) and loss["delay_max_s"] == 1.5
+    assert (loss["judged"], loss["named"], loss["missed"]) == (3, 1, [5, 9]) and loss["delay_max_s"] == 1.5
     assert s["per_thruster"]["3"]["smallest loss named"] == "15 %" and s["per_thruster"]["6"]["loss 15%"] == "-"
     leak = s["leak"]["0.20"]
     assert (leak["runs"], leak["named"], leak["missed"], leak["wrong_alarms"]) == (2, 1, [8], 1)
