@@ -230,6 +230,12 @@ def _named_block(vs: list[dict], judged: list[dict], err_key: str) -> dict:
     }
 
 
+def _in_time(v: dict) -> bool:
+    """Whether a verdict's fault was named in time: a partial loss within :data:`LOSS_WINDOW_S`
+    of its onset (the target), any other fault within its session."""
+    return bool(v["named"]) and (v["case"]["fault"] != "loss" or v["delay_s"] <= LOSS_WINDOW_S)
+
+
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
     out: dict = {"stuck": {}, "loss": {}, "leak": {}, "misalign": {}, "healthy": {}, "per_thruster": {},
@@ -274,9 +280,8 @@ def summarise(verdicts: list[dict]) -> dict:
             judged = v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"])
         else:
             judged = True
-        in_time = v["named"] and (c["fault"] != "loss" or v["delay_s"] <= LOSS_WINDOW_S)
         out["per_thruster"].setdefault(str(c["thruster"]), {})[key] = (
-            f"{v['delay_s']:.2f} s" if in_time else ("missed" if judged else "-"))
+            f"{v['delay_s']:.2f} s" if _in_time(v) else ("missed" if judged else "-"))
     sizes = sorted({round(1 - v["case"]["factor"], 3) for v in verdicts if v["case"]["fault"] == "loss"})
     for size in sizes:
         vs = [v for v in verdicts if v["case"]["fault"] == "loss" and round(1 - v["case"]["factor"], 3) == size]
@@ -284,7 +289,7 @@ def summarise(verdicts: list[dict]) -> dict:
         # what the valve delivered before: judged where it fired before the onset (the truth's
         # size is known) and was commanded after it
         judged = [v for v in vs if v["named"] or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))]
-        ok = [v for v in judged if v["named"] and v["delay_s"] <= LOSS_WINDOW_S]
+        ok = [v for v in judged if _in_time(v)]
         out["loss"][f"{size:.2f}"] = {
             "runs": len(vs), "judged": len(judged), "named": len(ok),
             "rate": len(ok) / len(judged) if judged else float("nan"),
