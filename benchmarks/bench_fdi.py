@@ -1,6 +1,7 @@
 """Thruster fault detection and isolation on the scenario family: detection rate, delay, false alarms.
 
     python -m benchmarks.bench_fdi [--quick] [--workers 2] [--json FILE] [--fault leak]   (or bsc bench --only fdi)
+    python -m benchmarks.bench_fdi --fault loss --loss-runs 10 --thrusters 0,1,2,3,6 --loss-sizes 0.1,0.15
 
 Every case is one recorded session made by the real path (simulator -> firmware -> CAN frames ->
 drivers + estimator -> MCAP; harness/fdi.py) and read as ``bsc analyze`` reads it
@@ -27,6 +28,11 @@ repeatable):
   only while the valve is open: a valve opened for a few pulses in 5 s shows almost nothing);
   its size is the angle;
 - healthy: 20 capture and 20 three_arm sessions (seeds 500..519), no alarm allowed;
+- with ``--loss-runs K``: K partial-loss sessions per thruster and size (the family's and K - 1
+  more, each with its own onset and seed, :func:`loss_repeats`), so the target's probability is
+  measured: the summary's ``loss_rate`` gives per thruster and size the runs named within 10 s of
+  those judged and the rate's one-sided 95 % lower bound (Clopper-Pearson: 59 of 59 is the fewest
+  runs that show 95 %); ``--thrusters`` keeps the faults of those thrusters only;
 - with ``--early``: stuck open and stuck closed of every thruster with the onset in the first
   1.5 s (uniform in [0.3, 1.5] s, session onset + 2 s; :func:`early_family`), judged as the others
   and summarised apart (``stuck_open early``).
@@ -108,6 +114,50 @@ def family(quick: bool = False, seed: int = 2026) -> list:
     return cases
 
 
+def loss_repeats(runs: int, thrusters: list[int] | None = None, sizes: tuple[float, ...] = LOSS_SIZES,
+                 seed: int = 2028) -> list:
+    """``runs`` more partial-loss cases per thruster (``thrusters``: these only) and size, each with
+    its own onset (uniform in [2, 3] s) and seed (1300 on), so a thruster's detection rate at a
+    size is measured over ``runs + 1`` sessions with the family's."""
+    from harness.fdi import FaultCase
+    from robot_description.thrusters import ThrusterLayout
+
+    rng = np.random.default_rng(seed)
+    thrusters = list(range(ThrusterLayout.named().n)) if thrusters is None else list(thrusters)
+    cases = []
+    k = 0
+    for size in sizes:
+        for j in thrusters:
+            for _ in range(runs):
+                onset = round(float(rng.uniform(2.0, 3.0)), 3)
+                cases.append(FaultCase("capture", 1300 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
+                                       round(1.0 - size, 3)))
+                k += 1
+    return cases
+
+
+def lower_bound(named: int, judged: int, confidence: float = 0.95) -> float:
+    """The one-sided Clopper-Pearson lower bound of a detection probability from ``named`` of
+    ``judged`` runs: the smallest p for which seeing ``named`` or more is still ``1 - confidence``
+    likely (0 runs: nan). 20 of 20 gives 0.861; 59 of 59 is the fewest to show 95 %."""
+    if judged == 0:
+        return float("nan")
+    if named == 0:
+        return 0.0
+
+    def tail(p: float) -> float:              # P(X >= named), X ~ Binomial(judged, p)
+        return sum(math.comb(judged, i) * p ** i * (1 - p) ** (judged - i) for i in range(named, judged + 1))
+
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if tail(mid) < 1.0 - confidence:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
 def early_family(quick: bool = False, seed: int = 2027) -> list:
     """Stuck open and stuck closed of every thruster (``quick``: a third) with the onset uniform in
     [0.3, 1.5] s, session onset + 2 s (seeds 300 on)."""
@@ -179,15 +229,24 @@ def _run_case(job) -> dict:
 
 
 def run(quick: bool = False, workers: int | None = None, progress: bool = False, early: bool = False,
-        warmup_s: float | None = None, faults: list[str] | None = None) -> list[dict]:
+        warmup_s: float | None = None, faults: list[str] | None = None, loss_runs: int = 1,
+        thrusters: list[int] | None = None, loss_sizes: tuple[float, ...] | None = None) -> list[dict]:
     """Record and judge every case (``faults``: only the cases of these fault types, ``healthy``
-    for the healthy sessions); the verdicts (harness.fdi.Verdict as JSON; ``alt``: judged again
-    with the detector's warm-up at ``warmup_s``)."""
+    for the healthy sessions; ``thrusters``: only the faults of these thrusters; ``loss_runs``:
+    that many partial-loss sessions per thruster and size, :func:`loss_repeats`; ``loss_sizes``: only
+    the losses of these sizes); the verdicts
+    (harness.fdi.Verdict as JSON; ``alt``: judged again with the detector's warm-up at ``warmup_s``)."""
     from gateway.parallel import map_jobs
 
     cases = family(quick) + (early_family(quick) if early else [])
+    sizes = loss_sizes or ((0.15, 0.30) if quick else LOSS_SIZES)
+    if loss_runs > 1:
+        cases += loss_repeats(loss_runs - 1, thrusters, sizes)
+    cases = [c for c in cases if c.fault != "loss" or any(abs(1.0 - c.factor - x) < 1e-9 for x in sizes)]
     if faults:
         cases = [c for c in cases if (c.fault or "healthy") in faults]
+    if thrusters is not None:
+        cases = [c for c in cases if c.fault is None or c.thruster in thrusters]
     with tempfile.TemporaryDirectory(prefix="bsc-bench-fdi-") as tmp:
         return map_jobs(_run_case, [(c, tmp, warmup_s) for c in cases], workers=workers,
                         progress="fdi cases" if progress else None, unit="session")
@@ -239,7 +298,7 @@ def _in_time(v: dict) -> bool:
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
     out: dict = {"stuck": {}, "loss": {}, "leak": {}, "misalign": {}, "healthy": {}, "per_thruster": {},
-                 "errors": [f"{v['name']}: {v['error']}" for v in verdicts if "error" in v]}
+                 "loss_rate": {}, "errors": [f"{v['name']}: {v['error']}" for v in verdicts if "error" in v]}
     verdicts = [v for v in verdicts if "error" not in v]
     for fault in ("stuck_open", "stuck_closed", "stuck_open early", "stuck_closed early"):
         vs = [v for v in verdicts if _group(v["case"]) == fault]
@@ -280,8 +339,10 @@ def summarise(verdicts: list[dict]) -> dict:
             judged = v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"])
         else:
             judged = True
-        out["per_thruster"].setdefault(str(c["thruster"]), {})[key] = (
-            f"{v['delay_s']:.2f} s" if _in_time(v) else ("missed" if judged else "-"))
+        # a thruster's first run of each fault and size (the family's; the rates over repeated
+        # losses are in loss_rate)
+        out["per_thruster"].setdefault(str(c["thruster"]), {}).setdefault(
+            key, f"{v['delay_s']:.2f} s" if _in_time(v) else ("missed" if judged else "-"))
     sizes = sorted({round(1 - v["case"]["factor"], 3) for v in verdicts if v["case"]["fault"] == "loss"})
     for size in sizes:
         vs = [v for v in verdicts if v["case"]["fault"] == "loss" and round(1 - v["case"]["factor"], 3) == size]
@@ -311,6 +372,19 @@ def summarise(verdicts: list[dict]) -> dict:
         out["misalign"][f"{angle:g}"] = _named_block(vs, judged, "angle_err_max_deg")
         out["misalign"][f"{angle:g}"]["rarely_commanded"] = sorted(v["case"]["thruster"] for v in vs
                                                                    if v not in judged)
+    # per thruster and loss size: named in time of judged, and the 95 % lower bound of the rate
+    for v in verdicts:
+        c = v["case"]
+        if c["fault"] != "loss":
+            continue
+        if not (v["named"] or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))):
+            continue
+        cell = out["loss_rate"].setdefault(str(c["thruster"]), {}).setdefault(f"{1 - c['factor']:.2f}", [0, 0])
+        cell[0] += _in_time(v)
+        cell[1] += 1
+    for row in out["loss_rate"].values():
+        for size, (a, b) in row.items():
+            row[size] = {"named": a, "judged": b, "lower95": lower_bound(a, b)}
     # per thruster, the smallest loss named (the detection-delay vs fault-size curve's edge)
     for row in out["per_thruster"].values():
         named = [float(k.split()[1].rstrip("%")) for k, val in row.items()
@@ -384,10 +458,19 @@ def main(argv=None) -> int:
     p.add_argument("--fault", action="append",
                    choices=("stuck_open", "stuck_closed", "loss", "leak", "misalign", "healthy"),
                    help="only the cases of this fault type (repeatable; default: all)")
+    p.add_argument("--loss-runs", type=int, default=1, metavar="K",
+                   help="K partial-loss sessions per thruster and size, each with its own onset and seed "
+                        "(the rate per thruster and its 95 %% lower bound: the summary's loss_rate)")
+    p.add_argument("--thrusters", type=lambda t: [int(x) for x in t.split(",")], metavar="J,K,...",
+                   help="only the faults of these thrusters (the healthy sessions stay)")
+    p.add_argument("--loss-sizes", type=lambda t: tuple(float(x) for x in t.split(",")), metavar="A,B,...",
+                   help="only the partial losses of these sizes (fractions of nominal thrust, e.g. 0.1,0.15)")
     a = p.parse_args(argv)
+    if a.loss_runs < 1:
+        p.error("--loss-runs must be 1 or more")
     t0 = time.perf_counter()
     verdicts = run(a.quick, a.workers, progress=sys.stderr.isatty(), early=a.early, warmup_s=a.warmup,
-                   faults=a.fault)
+                   faults=a.fault, loss_runs=a.loss_runs, thrusters=a.thrusters, loss_sizes=a.loss_sizes)
     s = summarise(verdicts)
     if a.warmup is not None:
         s[f"warmup_{a.warmup:g}"] = summarise([v["alt"] for v in verdicts if "alt" in v])

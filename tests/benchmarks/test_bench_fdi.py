@@ -5,6 +5,8 @@ not in time, wrong alarms and healthy false alarms counted). The figures themsel
 ``bsc bench --only fdi`` (minutes of simulation)."""
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from benchmarks import bench_fdi, suite
@@ -94,3 +96,45 @@ def test_run_takes_only_the_fault_types_asked_for(monkeypatch):
     bench_fdi.run(faults=["leak", "healthy"])
     assert {c.fault for c in seen} == {"leak", None}
     assert len(seen) == len(bench_fdi.LEAK_SIZES) * ThrusterLayout.named().n + 2 * bench_fdi.N_HEALTHY
+
+
+def test_repeated_losses_have_their_own_onsets_and_seeds():
+    cases = bench_fdi.loss_repeats(3, [0, 6], sizes=(0.1, 0.15))
+    assert len(cases) == 3 * 2 * 2 and {c.fault for c in cases} == {"loss"} and {c.thruster for c in cases} == {0, 6}
+    assert len({c.onset_s for c in cases}) == len(cases) and all(2.0 <= c.onset_s <= 3.0 for c in cases)
+    assert all(c.duration_s == pytest.approx(c.onset_s + bench_fdi.LOSS_WINDOW_S) for c in cases)
+    seeds = [c.seed for c in cases]
+    assert len(set(seeds)) == len(seeds)
+    assert not set(seeds) & {c.seed for c in bench_fdi.family() + bench_fdi.early_family()}
+
+
+def test_the_rates_lower_bound_is_clopper_pearsons():
+    assert bench_fdi.lower_bound(20, 20) == pytest.approx(0.05 ** (1 / 20), abs=1e-9)     # 0.861
+    assert bench_fdi.lower_bound(59, 59) >= 0.95 > bench_fdi.lower_bound(58, 58)
+    # 18 of 20: the p at which 18 or more is 5 % likely (a beta quantile; computed independently)
+    p = bench_fdi.lower_bound(18, 20)
+    assert sum(math.comb(20, i) * p ** i * (1 - p) ** (20 - i) for i in (18, 19, 20)) == pytest.approx(0.05, abs=1e-9)
+    assert 0.71 < p < 0.72 and bench_fdi.lower_bound(0, 5) == 0.0 and math.isnan(bench_fdi.lower_bound(0, 0))
+
+
+def test_loss_rates_per_thruster_count_every_run_and_the_table_keeps_the_first():
+    vs = [_v("loss", 3, factor=0.9, delay=1.0), _v("loss", 3, factor=0.9, named=False),
+          _v("loss", 3, factor=0.9, delay=11.0), _v("loss", 3, factor=0.9, named=False, duty=0.0),
+          {**_v("loss", 3, factor=0.9, named=False), "theta_true": float("nan")}]
+    s = bench_fdi.summarise(vs)
+    # the last two were not judged (never commanded after the onset; never fired before it)
+    assert s["loss_rate"]["3"]["0.10"] == {"named": 1, "judged": 3, "lower95": bench_fdi.lower_bound(1, 3)}
+    assert s["loss"]["0.10"]["judged"] == 3 and s["per_thruster"]["3"]["loss 10%"] == "1.00 s"
+
+
+def test_run_takes_repeated_losses_of_the_thrusters_asked_for(monkeypatch):
+    import gateway.parallel
+
+    seen = []
+    monkeypatch.setattr(gateway.parallel, "map_jobs", lambda fn, jobs, **kw: seen.extend(j[0] for j in jobs) or [])
+    bench_fdi.run(faults=["loss"], loss_runs=4, thrusters=[1, 2])
+    assert {c.thruster for c in seen} == {1, 2} and {c.fault for c in seen} == {"loss"}
+    assert len(seen) == 4 * 2 * len(bench_fdi.LOSS_SIZES)
+    seen.clear()
+    bench_fdi.run(faults=["loss"], loss_runs=3, thrusters=[0], loss_sizes=(0.15,))
+    assert len(seen) == 3 and {round(1 - c.factor, 3) for c in seen} == {0.15}
