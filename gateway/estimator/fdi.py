@@ -43,6 +43,16 @@ taken as commanded), the fault is cleared: an alarm of type ``cleared``, the mas
 command. A partial loss in the filter whose thrust comes back (its own signature with the opposite
 sign, a CUSUM for its own size) is cleared too, the lost part put back on the valve's wrench.
 
+The filter keeps learning while a fault is too small to be suspected, so a loss that began when
+its CUSUM last left zero is partly learnt into the valve's wrench before it is raised: the
+innovation it leaves is not ``g`` but ``rho_j g``, where ``rho_j`` (1 at the onset) is the part the
+filter has not learnt yet (:func:`follow`: after every update it learns from, ``rho_j`` loses the
+part of the remaining loss that update's gain ``K = P+ H^T R^-1`` took into the valve's force,
+along its nominal thrust). The loss CUSUMs, a long loss candidate's own sums and the partial loss
+put into the filter use ``rho_j g``, so the size is the whole loss, not what is left of it
+(Willsky and Jones' likelihood ratio for a jump in a Kalman filter's state, restricted to the
+valve's force along its nominal thrust).
+
 Everything here is compiled (numba, explicit loops, no fastmath, nogil, cache): :func:`observe`
 takes one IMU update's tap, the live estimator and the offline run (:func:`run_events`) call the
 same function, so a replay gives the same alarms as the live run. No I/O.
@@ -80,7 +90,8 @@ _NCFG = 18
 # raised; per thruster (tilt hypothesis h + j) whether its tilt was raised (right after the open and
 # loss families' flags: one flag per hypothesis, h + n in a row) and its window's 2 x 2 A (a11, a12,
 # a22) and B (b1, b2); while a long candidate is confirmed, every tilt's sums (5 n) and every open and
-# loss hypothesis' A and B (2 h) since it was raised; the faults (:data:`_NF` numbers each); the alarm
+# loss hypothesis' A and B (2 h) since it was raised; per thruster the loss CUSUM's rho (n,
+# :func:`follow`); the faults (:data:`_NF` numbers each); the alarm
 # rows (:data:`EVENT_FIELDS`)
 _S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_CLEARED, _S_NOISE, _S_HDR = (
     0, 1, 2, 4, 6, 7, 8, 9, 10, 11, 12)
@@ -90,10 +101,11 @@ MAX_FAULTS = 4
 # when it was detected (ns), the detector (SHORT, LONG), its statistic, its stage, its type once
 # confirmed; for a fault in the filter the recovery test's A and B (a stuck valve: short window; a
 # partial loss: since its CUSUM last left zero), its run, when the run began (ns), and the CUSUM;
-# a tilt's 2 x 2 A and B since it was raised, and the second angle of the size that raised it
+# a tilt's 2 x 2 A and B since it was raised, and the second angle of the size that raised it; a long
+# loss candidate's rho when raised (the part of its loss the filter had not learnt: 1 for the others)
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
- _F_RT, _F_RC, _F_T11, _F_T12, _F_T22, _F_T1, _F_T2, _F_THETA0B) = range(21)
-_NF = 21
+ _F_RT, _F_RC, _F_T11, _F_T12, _F_T22, _F_T1, _F_T2, _F_THETA0B, _F_RHO) = range(22)
+_NF = 22
 _F_BIAS0 = _F_T11      # a leak in the filter: the bias states' part along its wrench when confirmed (a tilt's place)
 CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR, DISMISSED = 0, 1, 2, 3, 4, 5, 6
 GATE = 80.0
@@ -120,6 +132,7 @@ NOISE_REF = 2.0                        # the noise level the thresholds and the 
 NOISE_CLIP = 4.0                       # an update adds at most this multiple of the current level
 RELEARN_SIGMA = 0.05                   # a partial loss put into the filter: its wrench's new sigma, of nominal
 TAKEOVER_MARGIN = 4.0                  # another hypothesis takes over a long candidate by this much more
+RHO_MIN = 0.25                         # a loss CUSUM whose loss the filter learnt all but this of restarts
 EVENT_FIELDS = ("t_ns", "thruster", "type", "theta", "stat", "window", "detected_t_ns")
 _NEV = len(EVENT_FIELDS)
 
@@ -185,6 +198,12 @@ class FdiSettings:
 @_jit
 def _fault_base(n: int) -> int:
     """Where the fault records begin in the state of ``n`` thrusters (:func:`_offsets`)."""
+    return _S_HDR + 6 * 2 * n + 16 * n
+
+
+@_jit
+def _rho_base(n: int) -> int:
+    """Where the loss CUSUMs' ``rho`` (one per thruster) are in the state."""
     return _S_HDR + 6 * 2 * n + 15 * n
 
 
@@ -230,6 +249,8 @@ def new_state(n: int, max_events: int = 64) -> np.ndarray:
     st[_S_BEST], st[_S_BEST + 1] = -1.0, -1.0
     st[_S_LEARN] = math.inf
     st[_S_NOISE] = 1.0
+    rb = int(_rho_base(n))
+    st[rb:rb + n] = 1.0
     return st
 
 
@@ -428,6 +449,9 @@ def _restart(st: F64, h_all: int) -> None:
     for w in range(2):
         st[_S_BEST + w] = -1.0
         st[_S_RUN + w] = 0.0
+    rb = _rho_base(n)
+    for j in range(n):
+        st[rb + j] = 1.0
 
 
 @_jit_alloc
@@ -450,7 +474,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     tb = _S_HDR + 6 * h_all                   # the tilts' block: flags, then their sums
     tr = tb + 6 * n                           # the tilts' sums since a long candidate was raised
     tq = tr + 5 * n                           # ... and the open and loss hypotheses' A and B
-    fbase = tq + 2 * h_all
+    rb = tq + 2 * h_all                       # the loss CUSUMs' rho
+    fbase = rb + n
     ev0 = fbase + _NF * MAX_FAULTS
     m = int(tap[tk.TAP_ROWS])
     S = tap[tk.TAP_S:tk.TAP_S + 36].reshape((6, 6))      # row-major, stride 6
@@ -485,13 +510,17 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 _tilt_add(st, tr + j, n, 1.0, a11, a12, a22, b1, b2)
                 for fam in range(2):
                     a, b = _project(Wnom, Ha, tap, L, n, m, j, fam, ew, g, gw)
-                    st[tq + 2 * j + fam] += a
-                    st[tq + h_all + 2 * j + fam] += b
+                    rj = st[rb + j] if fam == LOSS else 1.0
+                    st[tq + 2 * j + fam] += rj * rj * a
+                    st[tq + h_all + 2 * j + fam] += rj * b
         if hyp >= h_all:                          # a tilt: its 2 x 2 sums
             a11, a12, a22, b1, b2 = _tilt_project(Wnom, Ha, tap, L, n, m, hyp - h_all, ew, g, gw, gw2)
             _tilt_add(st, o + _F_T11, 1, 1.0, a11, a12, a22, b1, b2)
             continue
         a, b = _project(Wnom, Ha, tap, L, n, m, hyp // 2, hyp % 2, ew, g, gw)
+        rj = st[o + _F_RHO]
+        a *= rj * rj
+        b *= rj
         if leak_in_filter:
             # the filter's measurement is corrected for the leak at its current size: its size
             # refined on the innovation with that part added back (least squares since raised)
@@ -512,7 +541,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             for r in range(m):
                 ew[r] -= p1 * gw[r] + p2 * gw2[r]
         else:
-            th = _theta(st, o)
+            th = _theta(st, o) * st[o + _F_RHO]
             _signature(Wnom, Ha, tap, n, m, hyp // 2, hyp % 2, g)
             _whiten(L, m, g, gw)
             for r in range(m):
@@ -577,6 +606,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 if hyp < h_all:
                     st[o + _F_A] = st[tq + hyp]
                     st[o + _F_B] = st[tq + h_all + hyp]
+                    st[o + _F_RHO] = st[rb + hyp // 2] if hyp % 2 == LOSS else 1.0
                 else:
                     j = hyp - h_all
                     for k in range(5):
@@ -727,11 +757,17 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             k = 2 * j + fam
             st[_S_HDR + _A * h_all + k] = lam * st[_S_HDR + _A * h_all + k] + a
             st[_S_HDR + _B * h_all + k] = lam * st[_S_HDR + _B * h_all + k] + b
+            if fam == LOSS:                   # what the filter has not learnt of a loss since the onset
+                rj = st[rb + j]
+                a *= rj * rj
+                b *= rj
             cu = st[_S_HDR + _CU * h_all + k] + th1 * b - 0.5 * th1 * th1 * a
             if cu <= 0.0:
                 st[_S_HDR + _CU * h_all + k] = 0.0
                 st[_S_HDR + _CA * h_all + k] = 0.0
                 st[_S_HDR + _CB * h_all + k] = 0.0
+                if fam == LOSS:
+                    st[rb + j] = 1.0          # the onset is from the next update on
             else:
                 st[_S_HDR + _CU * h_all + k] = cu
                 st[_S_HDR + _CA * h_all + k] += a
@@ -802,6 +838,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         for k in range(5):
             st[o + _F_T11 + k] = 0.0
         st[o + _F_THETA0B] = phi2
+        st[o + _F_RHO] = st[rb + best // 2] if w == LONG and best < h_all and best % 2 == LOSS else 1.0
         for k in range(5 * n + 2 * h_all):
             st[tr + k] = 0.0
         if slot == nf:
@@ -814,6 +851,85 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     learn = 0.0 if suspect else cfg[_C_GATE]
     st[_S_LEARN] = learn
     return learn
+
+
+@_jit_alloc
+def follow(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, P: F64, cst: F64) -> None:
+    """After an IMU update the filter learnt from (``P`` its posterior covariance, ``tap`` the
+    update's rows): for each valve open in it whose loss CUSUM is above zero, the part ``rho_j``
+    of a loss since the CUSUM's onset that the filter has still not learnt. A loss of size one
+    left the filter's valve block off by ``rho_j w`` (``w`` the valve's nominal wrench); the update
+    took ``K H (rho_j w)`` of it, ``K = P+ H^T R^-1`` (the Kalman gain from the posterior covariance,
+    R the IMU rows' variances as the update used them); ``rho_j`` keeps what remains of the force
+    along the nominal thrust.
+    The other blocks' share (the bias states, valves correlated through the shared gain) is left
+    out."""
+    n = int(cfg[_C_N])
+    h_all = 2 * n
+    m = int(tap[tk.TAP_ROWS])
+    ns = 6 * n + 6
+    rb = _rho_base(n)
+    rinv = np.empty(6)
+    for r in range(3):
+        rinv[r] = 1.0 / (cst[tk._R_ACC] * cst[tk._RSCALE])
+    for r in range(3):
+        rinv[3 + r] = 1.0 / (cst[tk._R_MOM + r] * cst[tk._RSCALE])
+    s = np.empty(6)
+    z = np.empty(ns)
+    for j in range(n):
+        if st[_S_HDR + _CU * h_all + 2 * j + LOSS] <= 0.0:
+            continue
+        vbar = tap[tk.TAP_VALVES + j]
+        vt = tap[tk.TAP_VALVES + n + j]
+        if vbar == 0.0 and vt == 0.0:
+            continue
+        # s = R^-1 H w, the valve's nominal wrench seen through this update's rows
+        for r in range(3):
+            acc = 0.0
+            for q in range(6):
+                acc += Ha[6 * r + q] * Wnom[j, q]
+            s[r] = vbar * acc * rinv[r]
+        for r in range(3):
+            s[3 + r] = vt * Wnom[j, 3 + r] * rinv[3 + r] if m == 6 else 0.0
+        # z = H^T s: every open valve's block and the bias states (the rows of imu_tap)
+        for c in range(ns):
+            z[c] = 0.0
+        for i in range(n + 1):
+            fa = 1.0 if i == n else tap[tk.TAP_VALVES + i]
+            fg = 1.0 if i == n else tap[tk.TAP_VALVES + n + i]
+            if fa != 0.0:
+                for q in range(6):
+                    acc = 0.0
+                    for r in range(3):
+                        acc += Ha[6 * r + q] * s[r]
+                    z[6 * i + q] = fa * acc
+            if m == 6 and fg != 0.0:
+                for r in range(3):
+                    z[6 * i + 3 + r] += fg * s[3 + r]
+        # the part of w the update took into valve j's force, along its nominal thrust (the force
+        # alone: a tilt's columns are across it there, while their moments are not across w's, so
+        # a tilt in the filter would read as thrust learnt; a 20 degree tilt of thruster 2 was then
+        # named a partial loss too)
+        num = 0.0
+        den = 0.0
+        for q in range(3):
+            acc = 0.0
+            Pr = P[6 * j + q]
+            for c in range(ns):
+                acc += Pr[c] * z[c]
+            num += Wnom[j, q] * acc
+            den += Wnom[j, q] * Wnom[j, q]
+        rho = st[rb + j] * max(0.0, 1.0 - num / den)
+        if rho < RHO_MIN:
+            # the filter has learnt most of a loss that began when this CUSUM left zero: a loss
+            # that old is in the valve's wrench, and a CUSUM that has hovered above zero that long
+            # holds no onset to follow. It starts again (a healthy one would otherwise stop moving)
+            k = 2 * j + LOSS
+            st[_S_HDR + _CU * h_all + k] = 0.0
+            st[_S_HDR + _CA * h_all + k] = 0.0
+            st[_S_HDR + _CB * h_all + k] = 0.0
+            rho = 1.0
+        st[rb + j] = rho
 
 
 @_jit
@@ -908,10 +1024,15 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
             along /= f2
             ne = int(st[_S_EVENTS])
             q0 = _fault_base(n) + _NF * MAX_FAULTS + _NEV * (ne - 1)
+            sn = min(1.0, math.sqrt(p1 * p1 + p2 * p2) / along) if along > 0.0 else 0.0
             if ne > 0 and along > 0.0 and st[q0 + 1] == j and st[q0 + 2] == MISALIGNMENT:
-                st[q0 + 3] = math.degrees(math.asin(min(1.0, math.sqrt(p1 * p1 + p2 * p2) / along)))
+                st[q0 + 3] = math.degrees(math.asin(sn))
+            # the thrust turned by phi keeps cos(phi) of itself along its old direction: the
+            # signatures are first order (across only), so the part 1 - cos(phi) along it (6 % at
+            # 20 degrees, force and moment) is taken off here, or the loss CUSUMs see it as a loss
+            drop = along * (1.0 - math.sqrt(1.0 - sn * sn))
             for q in range(6):
-                x[6 * j + q] += p1 * Wnom[j, 6 + q] + p2 * Wnom[j, 12 + q]
+                x[6 * j + q] += p1 * Wnom[j, 6 + q] + p2 * Wnom[j, 12 + q] - drop * Wnom[j, q]
             _inflate_along(P, Wnom, j, 6)          # room to refine the two angles (radians), no more
             _inflate_along(P, Wnom, j, 12)
             st[o + _F_STAGE] = IN_FILTER
@@ -929,8 +1050,10 @@ def accommodate(st: F64, cfg: F64, Wnom: F64, x: F64, P: F64) -> None:
                 for q in range(6):
                     x[6 * j + q] *= theta / along
             continue
+        # what the filter had not learnt of the loss when it was raised (the rest it already holds)
+        r = st[o + _F_RHO]
         for q in range(6):
-            x[6 * j + q] -= theta * Wnom[j, q]
+            x[6 * j + q] -= theta * r * Wnom[j, q]
         _inflate_along(P, Wnom, j, 0)
 
 
@@ -1054,15 +1177,19 @@ def imu_update(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
                fst: F64, t_ns: int, accel: F64, rate: F64, tap: F64, st: F64, cfg: F64, Wnom: F64, Ha: F64) -> bool:
     """The thruster filter's update of one IMU sample (:func:`.thruster_kernel.imu_tap`) with the
     IMU's noise as measured (:func:`r_scale`) and what the detector let it learn (:func:`learning`),
-    then the detector's verdict (:func:`observe`) and the confirmed faults put into the filter
+    then the detector's verdict (:func:`observe`), what the filter learnt of a loss the detector is
+    gathering evidence of (:func:`follow`) and the confirmed faults put into the filter
     (:func:`accommodate`). True if the sample was applied."""
     cst[tk._RSCALE] = r_scale(st)
     lk = np.zeros(Wnom.shape[0])
     leaks(st, Wnom.shape[0], lk)
+    learnt = ist[tk._UPDATES]
     if not tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel, rate, tap, st[_S_LEARN],
                       lk, Wnom):
         return False
     observe(st, cfg, Wnom, Ha, tap, t_ns)
+    if ist[tk._UPDATES] != learnt:
+        follow(st, cfg, Wnom, Ha, tap, P, cst)
     accommodate(st, cfg, Wnom, x, P)
     return True
 
