@@ -295,6 +295,13 @@ def _in_time(v: dict) -> bool:
     return bool(v["named"]) and (v["case"]["fault"] != "loss" or v["delay_s"] <= LOSS_WINDOW_S)
 
 
+def _loss_judged(v: dict) -> bool:
+    """Whether a partial loss's run is judged: a loss shows only while the valve is commanded, and
+    within one session only against what the valve delivered before, so where it fired before the
+    onset (the truth's size is known) and was commanded after it; a named one always."""
+    return bool(v["named"]) or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))
+
+
 def summarise(verdicts: list[dict]) -> dict:
     """Rates, delays and false alarms per fault type and loss size, and per thruster."""
     out: dict = {"stuck": {}, "loss": {}, "leak": {}, "misalign": {}, "healthy": {}, "per_thruster": {},
@@ -336,7 +343,7 @@ def summarise(verdicts: list[dict]) -> dict:
         elif c["fault"] == "misalign":
             judged = v.get("commanded_after", 1.0) >= MISALIGN_DUTY
         elif c["fault"] == "loss":
-            judged = v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"])
+            judged = _loss_judged(v)
         else:
             judged = True
         # a thruster's first run of each fault and size (the family's; the rates over repeated
@@ -346,10 +353,7 @@ def summarise(verdicts: list[dict]) -> dict:
     sizes = sorted({round(1 - v["case"]["factor"], 3) for v in verdicts if v["case"]["fault"] == "loss"})
     for size in sizes:
         vs = [v for v in verdicts if v["case"]["fault"] == "loss" and round(1 - v["case"]["factor"], 3) == size]
-        # a loss shows only while the valve is commanded, and within one session only against
-        # what the valve delivered before: judged where it fired before the onset (the truth's
-        # size is known) and was commanded after it
-        judged = [v for v in vs if v["named"] or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))]
+        judged = [v for v in vs if _loss_judged(v)]
         ok = [v for v in judged if _in_time(v)]
         out["loss"][f"{size:.2f}"] = {
             "runs": len(vs), "judged": len(judged), "named": len(ok),
@@ -375,9 +379,7 @@ def summarise(verdicts: list[dict]) -> dict:
     # per thruster and loss size: named in time of judged, and the 95 % lower bound of the rate
     for v in verdicts:
         c = v["case"]
-        if c["fault"] != "loss":
-            continue
-        if not (v["named"] or (v.get("commanded_after", 1.0) > 0 and math.isfinite(v["theta_true"]))):
+        if c["fault"] != "loss" or not _loss_judged(v):
             continue
         cell = out["loss_rate"].setdefault(str(c["thruster"]), {}).setdefault(f"{1 - c['factor']:.2f}", [0, 0])
         cell[0] += _in_time(v)
