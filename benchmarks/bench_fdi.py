@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_fdi [--quick] [--workers 2] [--json FILE] [--fault leak]   (or bsc bench --only fdi)
     python -m benchmarks.bench_fdi --fault loss --loss-runs 10 --thrusters 0,1,2,3,6 --loss-sizes 0.1,0.15
+    python -m benchmarks.bench_fdi --scenario checkout --fault loss --fault healthy --loss-sizes 0.1,0.15
 
 Every case is one recorded session made by the real path (simulator -> firmware -> CAN frames ->
 drivers + estimator -> MCAP; harness/fdi.py) and read as ``bsc analyze`` reads it
@@ -33,6 +34,11 @@ repeatable):
   measured: the summary's ``loss_rate`` gives per thruster and size the runs named within 10 s of
   those judged and the rate's one-sided 95 % lower bound (Clopper-Pearson: 59 of 59 is the fewest
   runs that show 95 %); ``--thrusters`` keeps the faults of those thrusters only;
+- with ``--scenario checkout``: the same faults in a thruster checkout (simulator/scenarios/
+  checkout.toml: probe wrenches make every thruster fire, 6-11 % of the time), so that every
+  thruster is judged, not only the 5 of 18 the capture task fires before and after an onset; the
+  onsets come :data:`LATER_S` (one probe cycle, 3 s) later, once every valve has fired in each of
+  its probe directions; the healthy sessions are 20 checkouts of 16 s;
 - with ``--early``: stuck open and stuck closed of every thruster with the onset in the first
   1.5 s (uniform in [0.3, 1.5] s, session onset + 2 s; :func:`early_family`), judged as the others
   and summarised apart (``stuck_open early``).
@@ -70,16 +76,21 @@ MISALIGN_DUTY = 0.05
 EARLY_S = 1.5                # an onset before this: a fault in the filter's first convergence
 N_HEALTHY = 20
 TARGET_RATE = 0.95
+# A checkout's faults begin one probe cycle (3 s) later than the capture task's: every valve has
+# then fired in each of its probe directions, so the session knows what it delivered before
+LATER_S = {"checkout": 3.0}
 TARGET_DELAY_S = 0.5
 
 
-def family(quick: bool = False, seed: int = 2026) -> list:
+def family(quick: bool = False, seed: int = 2026, scenario: str = "capture") -> list:
     """The cases (harness.fdi.FaultCase) of a run; ``quick``: a third of the thrusters, two loss
-    sizes, 4 healthy sessions of each scenario."""
+    sizes, 4 healthy sessions of each scenario; ``scenario``: the faults' sessions (the healthy
+    ones: capture and three_arm for ``capture``, else that scenario, :func:`healthy`)."""
     from harness.fdi import FaultCase
     from robot_description.thrusters import ThrusterLayout
 
     rng = np.random.default_rng(seed)
+    later = LATER_S.get(scenario, 0.0)
     n = ThrusterLayout.named().n
     thrusters = list(range(0, n, 3)) if quick else list(range(n))
     sizes = (0.15, 0.30) if quick else LOSS_SIZES
@@ -87,35 +98,41 @@ def family(quick: bool = False, seed: int = 2026) -> list:
     k = 0
     for fault in ("stuck_open", "stuck_closed"):
         for j in thrusters:
-            onset = round(float(rng.uniform(2.0, 4.0)), 3)
-            cases.append(FaultCase("capture", 100 + k, onset + 2.0, j, fault, onset))
+            onset = round(float(rng.uniform(2.0, 4.0)) + later, 3)
+            cases.append(FaultCase(scenario, 100 + k, onset + 2.0, j, fault, onset))
             k += 1
     for size in sizes:
         for j in thrusters:
-            onset = round(float(rng.uniform(2.0, 3.0)), 3)
-            cases.append(FaultCase("capture", 100 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
+            onset = round(float(rng.uniform(2.0, 3.0)) + later, 3)
+            cases.append(FaultCase(scenario, 100 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
                                    round(1.0 - size, 3)))
             k += 1
     for size in (0.30,) if quick else LEAK_SIZES:
         for j in thrusters:
-            onset = round(float(rng.uniform(2.0, 3.0)), 3)
-            cases.append(FaultCase("capture", 700 + k, 8.0, j, "leak", onset, size))
+            onset = round(float(rng.uniform(2.0, 3.0)) + later, 3)
+            cases.append(FaultCase(scenario, 700 + k, 8.0 + later, j, "leak", onset, size))
             k += 1
     for angle in (20.0,) if quick else MISALIGN_DEG:
         for j in thrusters:
-            onset = round(float(rng.uniform(2.0, 3.0)), 3)
-            cases.append(FaultCase("capture", 900 + k, 8.0, j, "misalign", onset, angle_deg=angle))
+            onset = round(float(rng.uniform(2.0, 3.0)) + later, 3)
+            cases.append(FaultCase(scenario, 900 + k, 8.0 + later, j, "misalign", onset, angle_deg=angle))
             k += 1
-    healthy = 4 if quick else N_HEALTHY
-    for i in range(healthy):
-        cases.append(FaultCase("capture", 500 + i, 8.0))
-    for i in range(healthy):
-        cases.append(FaultCase("three_arm", 500 + i, 4.0))
-    return cases
+    return cases + healthy(4 if quick else N_HEALTHY, scenario)
+
+
+def healthy(n: int, scenario: str = "capture") -> list:
+    """``n`` healthy sessions (seeds 500 on) of capture (8 s) and of three_arm (4 s) for
+    ``capture``, else of ``scenario`` as long as its partial loss's longest sessions."""
+    from harness.fdi import FaultCase
+
+    if scenario == "capture":
+        return [FaultCase("capture", 500 + i, 8.0) for i in range(n)] + \
+            [FaultCase("three_arm", 500 + i, 4.0) for i in range(n)]
+    return [FaultCase(scenario, 500 + i, 3.0 + LATER_S.get(scenario, 0.0) + LOSS_WINDOW_S) for i in range(n)]
 
 
 def loss_repeats(runs: int, thrusters: list[int] | None = None, sizes: tuple[float, ...] = LOSS_SIZES,
-                 seed: int = 2028) -> list:
+                 seed: int = 2028, scenario: str = "capture") -> list:
     """``runs`` more partial-loss cases per thruster (``thrusters``: these only) and size, each with
     its own onset (uniform in [2, 3] s) and seed (1300 on), so a thruster's detection rate at a
     size is measured over ``runs + 1`` sessions with the family's."""
@@ -123,14 +140,15 @@ def loss_repeats(runs: int, thrusters: list[int] | None = None, sizes: tuple[flo
     from robot_description.thrusters import ThrusterLayout
 
     rng = np.random.default_rng(seed)
+    later = LATER_S.get(scenario, 0.0)
     thrusters = list(range(ThrusterLayout.named().n)) if thrusters is None else list(thrusters)
     cases = []
     k = 0
     for size in sizes:
         for j in thrusters:
             for _ in range(runs):
-                onset = round(float(rng.uniform(2.0, 3.0)), 3)
-                cases.append(FaultCase("capture", 1300 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
+                onset = round(float(rng.uniform(2.0, 3.0)) + later, 3)
+                cases.append(FaultCase(scenario, 1300 + k, onset + LOSS_WINDOW_S, j, "loss", onset,
                                        round(1.0 - size, 3)))
                 k += 1
     return cases
@@ -158,7 +176,7 @@ def lower_bound(named: int, judged: int, confidence: float = 0.95) -> float:
     return lo
 
 
-def early_family(quick: bool = False, seed: int = 2027) -> list:
+def early_family(quick: bool = False, seed: int = 2027, scenario: str = "capture") -> list:
     """Stuck open and stuck closed of every thruster (``quick``: a third) with the onset uniform in
     [0.3, 1.5] s, session onset + 2 s (seeds 300 on)."""
     from harness.fdi import FaultCase
@@ -172,7 +190,7 @@ def early_family(quick: bool = False, seed: int = 2027) -> list:
     for fault in ("stuck_open", "stuck_closed"):
         for j in thrusters:
             onset = round(float(rng.uniform(0.3, EARLY_S)), 3)
-            cases.append(FaultCase("capture", 300 + k, onset + 2.0, j, fault, onset))
+            cases.append(FaultCase(scenario, 300 + k, onset + 2.0, j, fault, onset))
             k += 1
     return cases
 
@@ -230,18 +248,19 @@ def _run_case(job) -> dict:
 
 def run(quick: bool = False, workers: int | None = None, progress: bool = False, early: bool = False,
         warmup_s: float | None = None, faults: list[str] | None = None, loss_runs: int = 1,
-        thrusters: list[int] | None = None, loss_sizes: tuple[float, ...] | None = None) -> list[dict]:
+        thrusters: list[int] | None = None, loss_sizes: tuple[float, ...] | None = None,
+        scenario: str = "capture") -> list[dict]:
     """Record and judge every case (``faults``: only the cases of these fault types, ``healthy``
     for the healthy sessions; ``thrusters``: only the faults of these thrusters; ``loss_runs``:
     that many partial-loss sessions per thruster and size, :func:`loss_repeats`; ``loss_sizes``: only
-    the losses of these sizes); the verdicts
+    the losses of these sizes; ``scenario``: the faults' sessions, :func:`family`); the verdicts
     (harness.fdi.Verdict as JSON; ``alt``: judged again with the detector's warm-up at ``warmup_s``)."""
     from gateway.parallel import map_jobs
 
-    cases = family(quick) + (early_family(quick) if early else [])
+    cases = family(quick, scenario=scenario) + (early_family(quick, scenario=scenario) if early else [])
     sizes = loss_sizes or ((0.15, 0.30) if quick else LOSS_SIZES)
     if loss_runs > 1:
-        cases += loss_repeats(loss_runs - 1, thrusters, sizes)
+        cases += loss_repeats(loss_runs - 1, thrusters, sizes, scenario=scenario)
     cases = [c for c in cases if c.fault != "loss" or any(abs(1.0 - c.factor - x) < 1e-9 for x in sizes)]
     if faults:
         cases = [c for c in cases if (c.fault or "healthy") in faults]
@@ -392,7 +411,8 @@ def summarise(verdicts: list[dict]) -> dict:
         named = [float(k.split()[1].rstrip("%")) for k, val in row.items()
                  if k.startswith("loss") and val.endswith(" s")]
         row["smallest loss named"] = f"{min(named):.0f} %" if named else "-"
-    for scen in ("capture", "three_arm"):
+    seen = {v["case"]["scenario"] for v in verdicts if v["case"]["fault"] is None}
+    for scen in ["capture", "three_arm"] + sorted(seen - {"capture", "three_arm"}):
         vs = [v for v in verdicts if v["case"]["fault"] is None and v["case"]["scenario"] == scen]
         out["healthy"][scen] = {"sessions": len(vs), "false_alarms": sum(v["false_alarms"] for v in vs)}
     return out
@@ -467,12 +487,16 @@ def main(argv=None) -> int:
                    help="only the faults of these thrusters (the healthy sessions stay)")
     p.add_argument("--loss-sizes", type=lambda t: tuple(float(x) for x in t.split(",")), metavar="A,B,...",
                    help="only the partial losses of these sizes (fractions of nominal thrust, e.g. 0.1,0.15)")
+    p.add_argument("--scenario", default="capture", metavar="NAME",
+                   help="the faults' sessions: capture (default; healthy: capture and three_arm) or checkout "
+                        "(every thruster fires; healthy: checkout)")
     a = p.parse_args(argv)
     if a.loss_runs < 1:
         p.error("--loss-runs must be 1 or more")
     t0 = time.perf_counter()
     verdicts = run(a.quick, a.workers, progress=sys.stderr.isatty(), early=a.early, warmup_s=a.warmup,
-                   faults=a.fault, loss_runs=a.loss_runs, thrusters=a.thrusters, loss_sizes=a.loss_sizes)
+                   faults=a.fault, loss_runs=a.loss_runs, thrusters=a.thrusters, loss_sizes=a.loss_sizes,
+                   scenario=a.scenario)
     s = summarise(verdicts)
     if a.warmup is not None:
         s[f"warmup_{a.warmup:g}"] = summarise([v["alt"] for v in verdicts if "alt" in v])

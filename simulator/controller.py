@@ -1,4 +1,5 @@
-"""The robot's flight software, inside the simulator: the paper's capture task.
+"""The robot's flight software, inside the simulator: the paper's capture task, or a thruster
+checkout.
 
 - Target: a satellite in a flat spin about the inertial z axis, one grasp point per arm on its
   rim.
@@ -9,6 +10,10 @@
   base; J is the end effector's position Jacobian with respect to the arm's own joints.
 - Spacecraft: PD on position (inertial) and attitude (SO(3) log), demanded body wrench about
   C, allocated to the thrusters at ``base_rate_hz``.
+- Checkout (``task = "checkout"``): the arms hold the positions they start in; probe wrenches
+  along and about every body axis, both ways in turn, added to the pose loop's demand, make
+  every thruster fire (the way a team checks its thrusters before a manoeuvre). No target is
+  near, so no plume keep-out.
 
 "Commanded" efforts are what this module asks for; friction and thruster errors make the
 actual efforts differ.
@@ -114,7 +119,11 @@ class Controller:
         self.base_p0, self.base_R0 = M.translation.copy(), M.rotation.copy()
 
     def desired(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """End-effector references and their rates (n_arms, 3), inertial; (K, n_arms, 3) for K times."""
+        """End-effector references and their rates (n_arms, 3), inertial; (K, n_arms, 3) for K times.
+        A checkout holds the start positions."""
+        if self.cfg.task == "checkout":
+            shape = np.shape(t) + self.x0.shape
+            return np.broadcast_to(self.x0, shape).copy(), np.zeros(shape)
         g, gd = self.target.grasp_points(t)
         if np.ndim(t) == 0:
             s, sd = quintic(t, self.cfg.approach_s)
@@ -152,9 +161,22 @@ class Controller:
         tau = force.dot(self._Jj) - self._damp * v[6:]
         return np.minimum(np.maximum(tau, self._neg_limit), self.limit), xf.copy()
 
-    def base_wrench(self, q: np.ndarray, v: np.ndarray, M: pin.SE3 | None = None) -> np.ndarray:
-        """Demanded thruster wrench (body frame, about C) holding the initial base pose
-        (``M``: the base pose ``q[:7]`` as an SE3, if already at hand)."""
+    def probe(self, t: float) -> np.ndarray:
+        """The probe wrench at time ``t`` (body frame, about C): ``probe_force_n`` along +x, -x, +y,
+        -y, +z, -z, then ``probe_moment_nm`` about them, each for ``probe_dwell_s``, cycling; zero
+        when both sizes are."""
+        w = np.zeros(6)
+        force, moment = self.cfg.probe_force_n, self.cfg.probe_moment_nm
+        if force or moment:
+            k = int(t // self.cfg.probe_dwell_s) % 12
+            axis = k // 2
+            w[axis] = (1.0 - 2.0 * (k % 2)) * (force if axis < 3 else moment)
+        return w
+
+    def base_wrench(self, t: float, q: np.ndarray, v: np.ndarray, M: pin.SE3 | None = None) -> np.ndarray:
+        """Demanded thruster wrench (body frame, about C) at time ``t``: holding the initial base
+        pose, plus the probe (:meth:`probe`) if any (``M``: the base pose ``q[:7]`` as an SE3, if
+        already at hand)."""
         if M is None:
             M = pin.XYZQUATToSE3(q[:7])
         R = M.rotation
@@ -164,4 +186,7 @@ class Controller:
         f_world = kp_p * (self.base_p0 - M.translation) - kd_p * v_world
         e_R = pin.log3(self.base_R0.T.dot(R))
         m_body = -kp_r * e_R - kd_r * v[3:6]
-        return np.concatenate([R.T.dot(f_world), m_body])
+        demand = np.concatenate([R.T.dot(f_world), m_body])
+        if self.cfg.probe_force_n or self.cfg.probe_moment_nm:
+            demand += self.probe(t)
+        return demand

@@ -135,6 +135,7 @@ class Simulation:
         # thrust_limit < 1: the flight software allocates at most that fraction of each thruster's
         # maximum, leaving an inner loop (external valve commands) thrust to correct with
         self.alloc = Allocator(self.layout, cfg.thrusters.keepout_deg, limit=thrust_limit)
+        self._keepout = cfg.controller.task == "capture"
         pw = cfg.thrusters.pwpfm
         self.pwpfm = PWPFM(self.layout.n, DT_S, pw.km, pw.tau_s, pw.u_on, pw.u_off, pw.min_on_s)
         self.thr_err = ThrusterErrors(self.layout, cfg.thrusters, rng[0], DT_S)
@@ -341,8 +342,11 @@ class Simulation:
         """Base controller, allocation and the thruster chain of the base period from step k."""
         A, be = self.trace.arrays, self.base_every
         M = pin.XYZQUATToSE3(q[:7])
-        self.demand = self.ctrl.base_wrench(q, v, M)
-        allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
+        self.demand = self.ctrl.base_wrench(k * DT_S, q, v, M)
+        if self._keepout:
+            allowed = self.alloc.allowed(M.rotation, M.translation, self.target.center, self.target.radius)
+        else:                                          # a checkout: no target to keep plumes off
+            allowed = self.allowed
         self.u_cmd = self.alloc.allocate(self.demand, allowed)
         self.wrench_cmd = self.alloc.B.dot(self.u_cmd)
         self.allowed = allowed

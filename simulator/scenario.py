@@ -17,6 +17,8 @@ from simulator.errors import SimulatorError
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 BUILTIN = {p.stem: p for p in sorted(SCENARIO_DIR.glob("*.toml"))}
 DEFAULT = "capture"
+# the flight software's tasks (controller.task): the paper's capture, or a thruster checkout
+TASKS = ("capture", "checkout")
 
 DEGRADE_KINDS = {
     "friction_growth": {"joint": str, "onset_s": float, "to_fraction": float, "ramp_s": float},
@@ -193,6 +195,14 @@ def _build(name: str, text: str, data: dict) -> Scenario:
     _check_thrusters(data["thrusters"])
     if data["duration_s"] <= 0:
         raise ScenarioError("duration_s must be positive")
+    ctrl = data["controller"]
+    if ctrl["task"] not in TASKS:
+        raise ScenarioError(f"controller.task must be one of {', '.join(TASKS)}, got {ctrl['task']!r}")
+    for key in ("probe_force_n", "probe_moment_nm"):
+        if not 0.0 <= ctrl[key] < float("inf"):
+            raise ScenarioError(f"controller.{key} must be a size >= 0, got {ctrl[key]!r}")
+    if not 0.0 < ctrl["probe_dwell_s"] < float("inf"):
+        raise ScenarioError(f"controller.probe_dwell_s must be positive, got {ctrl['probe_dwell_s']!r}")
     if "faults" in data:
         from simulator.firmware import Faults, FirmwareError
 

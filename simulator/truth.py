@@ -75,8 +75,9 @@ class Trace:
             "imu_rate_hz": sim.scenario.cfg.noise.imu.rate_hz,
             "thruster_pos_m": sim.layout.pos_m.tolist(), "thruster_dir": sim.layout.dir.tolist(),
             "thruster_max_n": sim.layout.max_n.tolist(), "fields": FIELDS,
-            "target_center_m": sim.target.center.tolist(), "target_radius_m": sim.target.radius,
         }
+        if sim.scenario.cfg.controller.task == "capture":      # a checkout has no target near
+            meta.update(target_center_m=sim.target.center.tolist(), target_radius_m=sim.target.radius)
         return cls(arrays, meta)
 
     def __getitem__(self, name: str) -> np.ndarray:

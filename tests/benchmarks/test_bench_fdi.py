@@ -138,3 +138,20 @@ def test_run_takes_repeated_losses_of_the_thrusters_asked_for(monkeypatch):
     seen.clear()
     bench_fdi.run(faults=["loss"], loss_runs=3, thrusters=[0], loss_sizes=(0.15,))
     assert len(seen) == 3 and {round(1 - c.factor, 3) for c in seen} == {0.15}
+
+
+def test_checkout_family_puts_every_fault_in_a_checkout():
+    """``--scenario checkout``: the same faults, thrusters and onsets in checkout sessions, and the
+    healthy sessions are checkouts as long as a loss's (the false alarms counted for them)."""
+    capture, checkout = bench_fdi.family(), bench_fdi.family(scenario="checkout")
+    faults = [c for c in checkout if c.fault is not None]
+    assert {c.scenario for c in faults} == {"checkout"}
+    assert [(c.fault, c.thruster, round(c.onset_s - 3.0, 3), c.factor) for c in faults] == \
+        [(c.fault, c.thruster, c.onset_s, c.factor) for c in capture if c.fault is not None]
+    healthy = [c for c in checkout if c.fault is None]
+    assert len(healthy) == bench_fdi.N_HEALTHY and {c.scenario for c in healthy} == {"checkout"}
+    assert all(c.duration_s == pytest.approx(6.0 + bench_fdi.LOSS_WINDOW_S) for c in healthy)
+    assert {c.scenario for c in bench_fdi.loss_repeats(2, [0], (0.15,), scenario="checkout")} == {"checkout"}
+    s = bench_fdi.summarise([_v(None, None, named=False, false=1, scenario="checkout")])
+    assert s["healthy"]["checkout"] == {"sessions": 1, "false_alarms": 1}
+    assert s["healthy"]["capture"] == {"sessions": 0, "false_alarms": 0}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from simulator import scenario
@@ -25,6 +26,9 @@ def test_defaults_are_the_capture_task():
     ("duration_s = [\n", "not valid TOML"),
     ("[faults]\ndrop_rat = 0.1\n", "unknown key.*drop_rat"),
     ("[friction]\nper_joint = 3\n", "friction.per_joint' must be a table"),
+    ("[controller]\ntask = 'dance'\n", "controller.task must be one of capture, checkout"),
+    ("[controller]\nprobe_force_n = -5\n", "controller.probe_force_n must be a size >= 0"),
+    ("[controller]\nprobe_dwell_s = 0\n", "controller.probe_dwell_s must be positive"),
 ])
 def test_bad_files_name_the_problem(tmp_path, text, match):
     f = tmp_path / "bad.toml"
@@ -52,6 +56,29 @@ def test_free_tables_pass_through(tmp_path):
     j2 = sim.robot.joint_names.index("arm0/j2")
     assert sim.dyn.friction.coulomb_nm[j2] == pytest.approx(0.55 * sim.robot.effort_limit[j2])
     assert sim.dyn.friction.coulomb_nm[0] == pytest.approx(0.30 * sim.robot.effort_limit[0])
+
+
+def test_checkout_fires_every_thruster_and_holds_the_pose():
+    """The checkout: over one probe cycle (12 directions x 0.25 s) every thruster fires, the
+    demand leans each way along and about every axis in its turn, the arms hold the positions they
+    started in and the spacecraft its pose (within 1 cm and 0.5 degree)."""
+    sc = scenario.load("checkout", {"duration_s": 3.1})
+    assert sc.cfg.controller.task == "checkout" and scenario.load().cfg.controller.probe_force_n == 0.0
+    sim = Simulation(sc)
+    tr = sim.run()
+    assert tr["valves"].any(axis=0).all()                      # every thruster fired
+    dwell = round(sc.cfg.controller.probe_dwell_s * 1000)       # steps of 1 ms
+    for k in range(12):
+        axis, sign = k // 2, 1 - 2 * (k % 2)
+        demand = tr["thr_demand"][k * dwell:(k + 1) * dwell, axis]
+        size = sc.cfg.controller.probe_force_n if axis < 3 else sc.cfg.controller.probe_moment_nm
+        assert sign * demand.mean() > 0.5 * size, (k, demand.mean())
+    xd, xdd = sim.ctrl.desired(np.array([0.0, 1.5, 3.0]))
+    assert np.array_equal(xd, np.broadcast_to(sim.ctrl.x0, xd.shape)) and not xdd.any()
+    q = tr["q"]
+    assert np.abs(q[:, :3] - q[0, :3]).max() < 0.01
+    turned = [np.linalg.norm(pin.log3(pin.Quaternion(x[6], x[3], x[4], x[5]).toRotationMatrix())) for x in q[::50]]
+    assert math.degrees(max(turned)) < 0.5
 
 
 def test_degradations_act_at_their_onset():
