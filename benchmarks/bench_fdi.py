@@ -134,8 +134,8 @@ def healthy(n: int, scenario: str = "capture") -> list:
 def loss_repeats(runs: int, thrusters: list[int] | None = None, sizes: tuple[float, ...] = LOSS_SIZES,
                  seed: int = 2028, scenario: str = "capture") -> list:
     """``runs`` more partial-loss cases per thruster (``thrusters``: these only) and size, each with
-    its own onset (uniform in [2, 3] s) and seed (1300 on), so a thruster's detection rate at a
-    size is measured over ``runs + 1`` sessions with the family's."""
+    its own onset (uniform in [2, 3] s, :data:`LATER_S` later in a checkout) and seed (1300 on), so
+    a thruster's detection rate at a size is measured over ``runs + 1`` sessions with the family's."""
     from harness.fdi import FaultCase
     from robot_description.thrusters import ThrusterLayout
 
@@ -178,7 +178,7 @@ def lower_bound(named: int, judged: int, confidence: float = 0.95) -> float:
 
 def early_family(quick: bool = False, seed: int = 2027, scenario: str = "capture") -> list:
     """Stuck open and stuck closed of every thruster (``quick``: a third) with the onset uniform in
-    [0.3, 1.5] s, session onset + 2 s (seeds 300 on)."""
+    [0.3, 1.5] s, session onset + 2 s (seeds 300 on), in any scenario (no :data:`LATER_S`)."""
     from harness.fdi import FaultCase
     from robot_description.thrusters import ThrusterLayout
 
