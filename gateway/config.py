@@ -290,6 +290,7 @@ DOCS = {
     "estimator.fdi.warmup_s": "no alarm while the filter converges from its prior, s",
     "estimator.fdi.tilt_s": "misalignment changes: the forgetting window of each thruster's tilt GLR, s",
     "estimator.fdi.tilt_min_deg": "misalignment changes: smallest tilt alarmed, degrees",
+    "estimator.fdi.hold_valve": "partial losses: above this loss CUSUM the valve's wrench is held, not learnt (0: off)",
     "recording": "Recording the session (docs/recording.md).",
     "recording.path": "record the session to this MCAP file (unset: no recording)",
 }

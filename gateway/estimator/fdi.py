@@ -83,8 +83,9 @@ SHORT, LONG = 0, 1
 
 # the detector's constants (float64 array, :meth:`FdiSettings.config`)
 (_C_LAM, _C_THETA1, _C_H, _C_THETA_MIN, _C_HOLD, _C_SUSPECT, _C_CONFIRM, _C_WARMUP,
- _C_N, _C_GATE, _C_NOISE_ALPHA, _C_LAM_TILT, _C_TILT_MIN) = 0, 1, 2, 4, 6, 8, 10, 12, 13, 14, 15, 16, 17
-_NCFG = 18
+ _C_N, _C_GATE, _C_NOISE_ALPHA, _C_LAM_TILT, _C_TILT_MIN,
+ _C_HOLD_VALVE) = 0, 1, 2, 4, 6, 8, 10, 12, 13, 14, 15, 16, 17, 18
+_NCFG = 19
 # its state (float64 array): a header; per hypothesis of the open and loss families (h = 2 n) the
 # short window's A and B, the CUSUM, its A and B since it last left zero, and whether it was
 # raised; per thruster (tilt hypothesis h + j) whether its tilt was raised (right after the open and
@@ -160,7 +161,13 @@ class FdiSettings:
     angles across its nominal direction, over an exponentially forgetting window of ``tilt_s``;
     its log-likelihood ratio (half the statistic, chi-squared with 2 degrees of freedom while
     healthy) competes with the CUSUMs of the long detector, under its threshold, hold and
-    confirmation, for a tilt of at least ``tilt_min_deg``."""
+    confirmation, for a tilt of at least ``tilt_min_deg``.
+
+    ``hold_valve``: a valve whose loss CUSUM is above it keeps its learned wrench while the rest of
+    the filter learns (:func:`holding`, a Schmidt "consider" update in
+    :func:`.thruster_kernel.imu_tap`); 0 turns this off. Without it a valve that fires alone, or
+    in few combinations, is the filter's only explanation of its missing thrust: the filter learnt
+    a 15 % loss before its CUSUM reached the suspicion level, and the loss went unnamed."""
 
     short_s: float = 0.1
     h_short: float = 200.0
@@ -176,6 +183,7 @@ class FdiSettings:
     warmup_s: float = 0.2
     tilt_s: float = 0.5
     tilt_min_deg: float = 3.0
+    hold_valve: float = 10.0
 
     def config(self, n: int, imu_period_s: float) -> np.ndarray:
         c = np.zeros(_NCFG)
@@ -192,6 +200,7 @@ class FdiSettings:
         c[_C_NOISE_ALPHA] = imu_period_s / NOISE_TAU_S
         c[_C_LAM_TILT] = math.exp(-imu_period_s / self.tilt_s)
         c[_C_TILT_MIN] = math.radians(self.tilt_min_deg)
+        c[_C_HOLD_VALVE] = self.hold_valve if self.hold_valve > 0.0 else math.inf
         return c
 
 
@@ -853,8 +862,22 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     return learn
 
 
+@_jit
+def holding(st: F64, cfg: F64) -> int:
+    """The valves whose wrench the next update leaves as it is (a mask, bit j: valve j): those
+    whose loss CUSUM is above ``hold_valve``, so that a loss being decided is not learnt into the
+    valve's healthy wrench (the rest of the filter still learns)."""
+    n = int(cfg[_C_N])
+    h_all = 2 * n
+    hold = 0
+    for j in range(n):
+        if st[_S_HDR + _CU * h_all + 2 * j + LOSS] > cfg[_C_HOLD_VALVE]:
+            hold |= 1 << j
+    return hold
+
+
 @_jit_alloc
-def follow(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, P: F64, cst: F64) -> None:
+def follow(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, P: F64, cst: F64, hold: int = 0) -> None:
     """After an IMU update the filter learnt from (``P`` its posterior covariance, ``tap`` the
     update's rows): for each valve open in it whose loss CUSUM is above zero, the part ``rho_j``
     of a loss since the CUSUM's onset that the filter has still not learnt. A loss of size one
@@ -877,7 +900,7 @@ def follow(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, P: F64, cst: F64) ->
     s = np.empty(6)
     z = np.empty(ns)
     for j in range(n):
-        if st[_S_HDR + _CU * h_all + 2 * j + LOSS] <= 0.0:
+        if st[_S_HDR + _CU * h_all + 2 * j + LOSS] <= 0.0 or (hold >> j) & 1:
             continue
         vbar = tap[tk.TAP_VALVES + j]
         vt = tap[tk.TAP_VALVES + n + j]
@@ -1184,12 +1207,13 @@ def imu_update(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: 
     lk = np.zeros(Wnom.shape[0])
     leaks(st, Wnom.shape[0], lk)
     learnt = ist[tk._UPDATES]
+    hold = holding(st, cfg)
     if not tk.imu_tap(x, P, Q, cst, c, hist_t, hist_arm, hist_mask, ist, fst, t_ns, accel, rate, tap, st[_S_LEARN],
-                      lk, Wnom):
+                      lk, Wnom, hold):
         return False
     observe(st, cfg, Wnom, Ha, tap, t_ns)
     if ist[tk._UPDATES] != learnt:
-        follow(st, cfg, Wnom, Ha, tap, P, cst)
+        follow(st, cfg, Wnom, Ha, tap, P, cst, hold)
     accommodate(st, cfg, Wnom, x, P)
     return True
 

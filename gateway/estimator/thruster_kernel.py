@@ -365,7 +365,7 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
 @_jit_alloc
 def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
             fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float, leak: F64 | None = None,
-            Wleak: F64 | None = None) -> bool:
+            Wleak: F64 | None = None, hold: int = 0) -> bool:
     """:func:`imu`, and when ``tap`` is not empty (length :func:`tap_size`) the update's
     innovation written into it before the update (``tap[TAP_APPLIED]`` 0 when nothing was
     applied). The tap only reads the state. ``learn``: the largest normalised innovation squared
@@ -380,7 +380,13 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     leaks, :mod:`.fdi`): valve i delivers ``leak[i] Wleak[i]`` while closed, an input the
     measurement is corrected for before the innovation (``y -= leak_i (1 - vbar_i) Ha Wleak_i``,
     the gyro rows ``leak_i (1 - vt_i) Wleak_i`` moment), so the filter does not learn it into the
-    valves' wrenches and the bias states. Zero (or None): the measurement as it is, bit for bit."""
+    valves' wrenches and the bias states. Zero (or None): the measurement as it is, bit for bit.
+
+    ``hold``: a mask of valves whose wrench the update leaves as it is (bit i: valve i; the fault
+    detector's valves under suspicion of a loss, :mod:`.fdi`): a Schmidt "consider" update. Their
+    blocks of ``x`` and ``P`` (among themselves) keep their values, their cross-covariance with
+    the other states takes the update's downdate, which is the covariance of the update whose gain
+    is zero on them and the Kalman gain elsewhere. 0: every state learns, bit for bit as before."""
     want = tap.shape[0] > 0
     if want:
         tap[TAP_APPLIED] = 0.0
@@ -528,7 +534,29 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     support &= (np.int64(1) << n) - 1
     if support & ~ist[_ACTIVE]:
         _set_runs(ist, n, ist[_ACTIVE] | support)
+    nh = 0
+    for i in range(n):
+        if (hold >> i) & 1:
+            nh += 6
+    held = np.empty(nh, dtype=np.int64)
+    k = 0
+    for i in range(n):
+        if (hold >> i) & 1:
+            for q in range(6):
+                held[k] = 6 * i + q
+                k += 1
+    xh = np.empty(nh)
+    Ph = np.empty((nh, nh))
+    for a in range(nh):
+        xh[a] = x[held[a]]
+        for b in range(nh):
+            Ph[a, b] = P[held[a], held[b]]
     done = _update(x, P, ist, m, y, hc, hv, hn, R, learn)
+    if done == _APPLIED:
+        for a in range(nh):
+            x[held[a]] = xh[a]
+            for b in range(nh):
+                P[held[a], held[b]] = Ph[a, b]
     if done == _NOT_PD:
         raise ValueError("innovation covariance not positive definite")
     if done == _APPLIED:

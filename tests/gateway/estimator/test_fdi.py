@@ -95,6 +95,19 @@ def stream(model, layout, *, steps, seed, fault=None, noise=1.0, quiet=()):
     return out, W
 
 
+def imu_events(ev, n, kf, ref):
+    """The stream's IMU events ``(k, t_ns, accel, rate)``, the epochs before each pushed into both
+    the compiled filter ``kf`` and the numpy one ``ref`` (``n`` valves)."""
+    shifts = np.arange(n)
+    for k in range(len(ev["kind"])):
+        t = int(ev["t_ns"][k])
+        if ev["kind"][k] == tk.IMU:
+            yield k, t, ev["accel"][k], ev["rate"][k]
+        else:
+            kf.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
+            ref.push_epoch(t, ev["arm"][k], ((int(ev["masks"][k]) >> shifts) & 1).astype(float))
+
+
 def detect(model, layout, ev, settings=None):
     kf = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
     st = fdi.new_state(layout.n)
@@ -162,18 +175,12 @@ def test_follow_is_the_kalman_gains_share_of_a_loss(paper):
     h_all = 2 * n
     cu = fdi._S_HDR + fdi._CU * h_all + 2 * np.arange(n) + fdi.LOSS
     rb = fdi._rho_base(n)
-    shifts = np.arange(n)
     compared = restarted = 0
     worst = 0.0
-    for k in range(len(ev["kind"])):
-        t = int(ev["t_ns"][k])
-        if ev["kind"][k] != tk.IMU:
-            kf.push_epoch(t, ev["arm"][k], int(ev["masks"][k]))
-            ref.push_epoch(t, ev["arm"][k], ((int(ev["masks"][k]) >> shifts) & 1).astype(float))
-            continue
+    for _, t, a, w in imu_events(ev, n, kf, ref):
         P0 = ref.P.copy()
-        applied = ref.imu(t, ev["accel"][k], ev["rate"][k])
-        assert tk.imu_tap(*kf.state, t, ev["accel"][k], ev["rate"][k], tap, math.inf) == applied
+        applied = ref.imu(t, a, w)
+        assert tk.imu_tap(*kf.state, t, a, w, tap, math.inf) == applied
         if not applied:
             continue
         m = int(tap[tk.TAP_ROWS])
@@ -201,6 +208,68 @@ def test_follow_is_the_kalman_gains_share_of_a_loss(paper):
     # rho is within [0, 1]; the posterior form loses a few digits to cancellation (P+ H^T is a
     # small difference where the IMU's noise is small against the valves' uncertainty)
     assert compared > 300 and worst < 1e-5, (compared, worst)
+
+
+def test_a_held_valve_keeps_its_wrench_and_the_rest_learns_as_a_schmidt_update(paper):
+    """imu_tap's ``hold``: the held valves' blocks of x and P (among themselves) keep their prior
+    values; every other entry, their cross-covariance with the rest included, is the plain
+    update's, bit for bit. That is the covariance of the update whose gain is the Kalman gain with
+    the held rows zeroed (Joseph form, checked against the numpy filter's H and R), and it stays
+    symmetric and positive definite. A mask of 0 is the plain update."""
+    model, layout = paper
+    n = layout.n
+    ev, _ = stream(model, layout, steps=1500, seed=4)
+    kf = tk.CompiledThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    ref = ThrusterFilter(model, layout, dt=1e-3, imu_steps=IMU_STEPS)
+    tap = np.zeros(tk.tap_size(n))
+    no_leak, no_w = np.zeros(n), np.zeros((n, 6))
+    checked = 0
+    for k, t, a, w in imu_events(ev, n, kf, ref):
+        prior = tuple(z.copy() for z in kf.state)
+        applied = ref.imu(t, a, w)
+        assert tk.imu_tap(*kf.state, t, a, w, tap, math.inf, no_leak, no_w, 0) == applied
+        if not applied or k % 7:
+            continue
+        m = int(tap[tk.TAP_ROWS])
+        H = ref._H[:m]
+        seen = [j for j in range(n) if H[:, 6 * j:6 * j + 6].any()]
+        if len(seen) < 2:
+            continue
+        j = seen[checked % len(seen)]
+        hold = (1 << j) | (1 << seen[(checked + 1) % len(seen)])
+        held = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in range(n) if (hold >> i) & 1])
+        before = tuple(z.copy() for z in prior)          # the prior with the random walk: learn nothing
+        assert tk.imu_tap(*before, t, a, w, np.zeros(0), 0.0, no_leak, no_w, 0)
+        x0, P0 = before[0], before[1]
+        got = tuple(z.copy() for z in prior)
+        assert tk.imu_tap(*got, t, a, w, np.zeros(0), math.inf, no_leak, no_w, hold)
+        x, P = got[0], got[1]
+        want_x, want_P = kf.x.copy(), kf.P.copy()
+        want_x[held] = x0[held]
+        want_P[np.ix_(held, held)] = P0[np.ix_(held, held)]
+        assert np.array_equal(x, want_x) and np.array_equal(P, want_P) and np.array_equal(P, P.T)
+        R = ref._R6 if m == 6 else ref._R3
+        K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+        K[held] = 0.0
+        A = np.eye(len(x0)) - K @ H
+        joseph = A @ P0 @ A.T + K @ R @ K.T
+        assert np.abs(P - joseph).max() <= 1e-9 * np.abs(P0).max()
+        assert np.linalg.eigvalsh(P).min() > 0.0
+        checked += 1
+    assert checked > 50
+
+
+def test_a_loss_cusum_above_hold_valve_holds_that_valve():
+    """fdi.holding: the valves whose loss CUSUM is above ``hold_valve``; 0 turns the hold off."""
+    n = 18
+    st = fdi.new_state(n)
+    cu = fdi._S_HDR + fdi._CU * 2 * n + 2 * np.arange(n) + fdi.LOSS
+    st[cu[3]], st[cu[7]], st[cu[9]] = 10.5, 9.5, 40.0
+    st[fdi._S_HDR + fdi._CU * 2 * n + 2 * 5 + fdi.OPEN] = 50.0     # an open hypothesis holds nothing
+    cfg = fdi.FdiSettings().config(n, IMU_STEPS * 1e-3)
+    assert fdi.FdiSettings().hold_valve == 10.0
+    assert fdi.holding(st, cfg) == (1 << 3) | (1 << 9)
+    assert fdi.holding(st, fdi.FdiSettings(hold_valve=0.0).config(n, IMU_STEPS * 1e-3)) == 0
 
 
 def test_without_learning_the_state_stays_and_the_tap_still_reports(paper):
