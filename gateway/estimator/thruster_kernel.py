@@ -363,6 +363,37 @@ def _tap(x: F64, P: F64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, cnt:
 
 
 @_jit_alloc
+def _held_update(x: F64, P: F64, ist: I64, m: int, y: F64, hc: I64, hv: F64, hn: I64, R: F64, gate: float,
+                 hold: int, n: int) -> int:
+    """:func:`_update` with the valves of the mask ``hold`` considered, not estimated (a Schmidt
+    update, :func:`imu_tap`): their blocks of ``x`` and ``P`` keep their prior values."""
+    nh = 0
+    for i in range(n):
+        if (hold >> i) & 1:
+            nh += 6
+    held = np.empty(nh, dtype=np.int64)
+    k = 0
+    for i in range(n):
+        if (hold >> i) & 1:
+            for q in range(6):
+                held[k] = 6 * i + q
+                k += 1
+    xh = np.empty(nh)
+    Ph = np.empty((nh, nh))
+    for a in range(nh):
+        xh[a] = x[held[a]]
+        for b in range(nh):
+            Ph[a, b] = P[held[a], held[b]]
+    done = _update(x, P, ist, m, y, hc, hv, hn, R, gate)
+    if done == _APPLIED:
+        for a in range(nh):
+            x[held[a]] = xh[a]
+            for b in range(nh):
+                P[held[a], held[b]] = Ph[a, b]
+    return done
+
+
+@_jit_alloc
 def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64, hist_mask: I64, ist: I64,
             fst: F64, t_ns: int, accel_imu: F64, rate_imu: F64, tap: F64, learn: float, leak: F64 | None = None,
             Wleak: F64 | None = None, hold: int = 0) -> bool:
@@ -534,29 +565,10 @@ def imu_tap(x: F64, P: F64, Q: F64, cst: F64, c: F64, hist_t: I64, hist_arm: F64
     support &= (np.int64(1) << n) - 1
     if support & ~ist[_ACTIVE]:
         _set_runs(ist, n, ist[_ACTIVE] | support)
-    nh = 0
-    for i in range(n):
-        if (hold >> i) & 1:
-            nh += 6
-    held = np.empty(nh, dtype=np.int64)
-    k = 0
-    for i in range(n):
-        if (hold >> i) & 1:
-            for q in range(6):
-                held[k] = 6 * i + q
-                k += 1
-    xh = np.empty(nh)
-    Ph = np.empty((nh, nh))
-    for a in range(nh):
-        xh[a] = x[held[a]]
-        for b in range(nh):
-            Ph[a, b] = P[held[a], held[b]]
-    done = _update(x, P, ist, m, y, hc, hv, hn, R, learn)
-    if done == _APPLIED:
-        for a in range(nh):
-            x[held[a]] = xh[a]
-            for b in range(nh):
-                P[held[a], held[b]] = Ph[a, b]
+    if hold == 0:
+        done = _update(x, P, ist, m, y, hc, hv, hn, R, learn)
+    else:
+        done = _held_update(x, P, ist, m, y, hc, hv, hn, R, learn, hold, n)
     if done == _NOT_PD:
         raise ValueError("innovation covariance not positive definite")
     if done == _APPLIED:
