@@ -61,6 +61,9 @@ BENCHMARKS: dict[str, tuple[str, str, bool]] = {
             "(148 simulated sessions, about 15 minutes on 2 cores; only with --only fdi)", False),
     "accuracy": ("benchmarks.bench_accuracy", "joint torques of any robot, sensor side against distal side, on "
                  "simulated sessions against the truth (issue 17; only with --only accuracy)", False),
+    "gyro": ("benchmarks.bench_gyro_noise", "thruster filter with the gyro-difference noise modelled exactly, "
+             "against the kernel's white treatment (4 simulated sessions, a few minutes; only with --only gyro)",
+             False),
     "contact": ("benchmarks.bench_contact", "contact at an end effector: time to flag, wrench error, false contacts "
                 "(34 simulated sessions, a few minutes; only with --only contact)", False),
     "fuzz": ("benchmarks.fuzz_drivers", "driver fuzzing, 1 M frames (only with --fuzz or --only fuzz)", False),

@@ -31,7 +31,8 @@ IMU sample, dt = step):
 
 ``f_arm, tau_arm`` is the arms' wrench on the spacecraft (``arm_reaction``). The noise of
 consecutive gyro differences is correlated (MA(1)); the filter treats it as white (documented
-simplification). Everything here is per-sample Python + numpy, called as the estimator would:
+simplification; modelled exactly, the moments come 2-10 times closer: benchmarks/bench_gyro_noise.py
+and docs/estimator.md). Everything here is per-sample Python + numpy, called as the estimator would:
 :meth:`ThrusterFilter.push_epoch` at 1 kHz, :meth:`ThrusterFilter.imu` at the IMU rate. The
 product runs the compiled form, :mod:`.thruster_kernel`, which takes its prior from this class;
 this one is its reference form in the tests.
