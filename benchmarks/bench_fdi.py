@@ -308,6 +308,13 @@ def _named_block(vs: list[dict], judged: list[dict], err_key: str) -> dict:
     }
 
 
+def _first_command(v: dict) -> float:
+    """Onset -> the thruster's first commanded step, s: 0 for a stuck-open valve (it shows at
+    once) and where the verdict does not say (an older one)."""
+    t = v.get("commanded_from_s", float("nan"))
+    return t if v["case"]["fault"] == "stuck_closed" and math.isfinite(t) else 0.0
+
+
 def _in_time(v: dict) -> bool:
     """Whether a verdict's fault was named in time: a partial loss within :data:`LOSS_WINDOW_S`
     of its onset (the target), any other fault within its session."""
@@ -333,10 +340,16 @@ def summarise(verdicts: list[dict]) -> dict:
         fault = fault.split()[0]
         judged = [v for v in vs if fault == "stuck_open" or v["commanded_duty"] > 0]
         ok = [v for v in judged if v["named"] and v["delay_s"] <= TARGET_DELAY_S]
+        # a valve stuck closed shows nothing until it is commanded: the delay from that first command
+        # too (a probe may first command it 0.45 s after the onset; nan in older verdicts: from the onset)
+        ok_cmd = [v for v in judged if v["named"] and v["delay_s"] - _first_command(v) <= TARGET_DELAY_S]
         out["stuck"][_group(vs[0]["case"]) if vs else fault] = {
             "runs": len(vs), "judged": len(judged), "named_in_time": len(ok),
             "rate": len(ok) / len(judged) if judged else float("nan"),
             "delay_median_s": _med([v["delay_s"] for v in ok]), "delay_max_s": _max([v["delay_s"] for v in ok]),
+            "named_in_time_from_command": len(ok_cmd),
+            "rate_from_command": len(ok_cmd) / len(judged) if judged else float("nan"),
+            "first_command_max_s": _max([_first_command(v) for v in judged]),
             "theta_err_max": _max([abs(v["theta"] - v["theta_true"]) for v in ok]),
             "wrong_alarms": sum(v["false_alarms"] for v in vs),
             "not_named": sorted(v["case"]["thruster"] for v in judged if v not in ok),
@@ -442,6 +455,13 @@ def figures(quick: bool = False) -> list[dict]:
                              f"max {d['delay_max_s']:.2f} s; wrong alarms {d['wrong_alarms']}"
                              + (f"; never commanded (not judged): {d['never_commanded']}"
                                 if d["never_commanded"] else "")))
+        if fault.startswith("stuck_closed"):
+            rows.append(row(f"{what}: right thruster + type within 0.5 s of its first command",
+                            100 * d["rate_from_command"], "% of runs", target=">= 95 %",
+                            ok=d["rate_from_command"] >= TARGET_RATE,
+                            note=f"{d['named_in_time_from_command']}/{d['judged']} runs; a valve stuck closed shows "
+                                 f"nothing until commanded, the last first command came "
+                                 f"{d['first_command_max_s']:.2f} s after its onset"))
         rows.append(row(f"{what}: published wrench NRMSE after the alarm, worst run", 100 * d["nrmse_published_max"],
                         "%", target="<= 5 %", ok=d["nrmse_published_max"] <= 0.05,
                         note=f"median {100 * d['nrmse_published_median']:.1f} %; above 5 %: "

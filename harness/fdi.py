@@ -116,6 +116,7 @@ class Verdict:
     theta_true: float = float("nan")
     commanded_duty: float = float("nan")   # the thruster's commanded open fraction, 0.5 s from the onset
     commanded_after: float = float("nan")  # ... from the onset to the session's end
+    commanded_from_s: float = float("nan")  # onset -> the first step it was commanded open, s (nan: never)
     false_alarms: int = 0          # alarms that name anything else
     cleared_delay_s: float = float("nan")   # a stuck valve that came back (end_s): end -> its clearing, s
     # thruster wrench from the alarm to the end, band-limited (20 Hz) NRMSE against the truth
@@ -168,6 +169,9 @@ def judge(case: FaultCase, path: str | os.PathLike[str], result=None) -> Verdict
     after = res.valve_t_ns >= on
     if after.any():
         v.commanded_after = float(((res.valve_masks[after] >> j) & 1).mean())
+        opened = np.flatnonzero(after & (((res.valve_masks >> j) & 1) == 1))
+        if len(opened):
+            v.commanded_from_s = float(res.valve_t_ns[opened[0]] - on) / 1e9
     want = EXPECTED[case.fault]
     for a in res.alarms:
         if (case.end_s is not None and v.named and a.thruster == j and a.fault == "cleared"

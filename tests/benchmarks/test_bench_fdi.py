@@ -68,6 +68,18 @@ def test_summary_counts_what_the_targets_count():
                             "three_arm": {"sessions": 1, "false_alarms": 2}}
 
 
+def test_a_stuck_closed_valve_is_also_timed_from_its_first_command():
+    late = {**_v("stuck_closed", 2, delay=0.64, duty=0.02), "commanded_from_s": 0.48}   # first fired at 0.48 s
+    slow = {**_v("stuck_closed", 3, delay=0.9, duty=0.2), "commanded_from_s": 0.1}      # fired at once, named late
+    old = _v("stuck_closed", 4, delay=0.3)                                              # no commanded_from_s
+    sc = bench_fdi.summarise([late, slow, old])["stuck"]["stuck_closed"]
+    assert (sc["judged"], sc["named_in_time"], sc["not_named"]) == (3, 1, [2, 3])      # from the onset
+    assert sc["named_in_time_from_command"] == 2 and sc["rate_from_command"] == pytest.approx(2 / 3)
+    assert sc["first_command_max_s"] == pytest.approx(0.48)
+    opened = {**_v("stuck_open", 5, delay=0.7), "commanded_from_s": 0.4}               # shows at once: from the onset
+    assert bench_fdi.summarise([opened])["stuck"]["stuck_open"]["named_in_time_from_command"] == 0
+
+
 def test_early_family_covers_every_thruster_in_the_first_convergence():
     cases = bench_fdi.early_family()
     n = ThrusterLayout.named().n

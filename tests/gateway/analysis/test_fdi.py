@@ -56,6 +56,8 @@ def test_stuck_valve_named_within_half_a_second(sessions, name):
     assert 0 < v.delay_s <= 0.5
     assert v.theta == pytest.approx(v.theta_true, abs=0.05)
     assert v.false_alarms == 0, v.alarms
+    if case.fault == "stuck_closed":        # it shows once commanded: that first command before the alarm
+        assert 0.0 <= v.commanded_from_s < v.delay_s
 
 
 def test_partial_loss_named_with_its_size(sessions):
