@@ -638,10 +638,15 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             continue
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
         # the type is a size test: while the size is within 3 of its standard errors
-        # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods)
+        # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods). With
+        # nothing measured since the short window raised it (A 0: a loss of a valve not commanded
+        # since), that window's size is all there is, and it is low: the window mixes in the
+        # healthy updates before the onset (a valve stuck closed at a 20-30 ms pulse, then idle:
+        # 0.60-0.73, a partial loss). At or above the type's threshold it decides; below, wait
         edge = OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA
-        if (st[o + _F_COUNT] < 4.0 * confirm and st[o + _F_A] > 0.0
-                and abs(theta - edge) * math.sqrt(st[o + _F_A]) < 3.0):
+        if (st[o + _F_COUNT] < 4.0 * confirm
+                and ((st[o + _F_A] <= 0.0 and st[o + _F_WIN] == SHORT and theta < edge)
+                     or (st[o + _F_A] > 0.0 and abs(theta - edge) * math.sqrt(st[o + _F_A]) < 3.0))):
             confirming = True
             continue
         if theta < cfg[_C_THETA_MIN + int(st[o + _F_WIN])]:

@@ -29,7 +29,7 @@ def paper():
     return EstimatorModel.from_robot(rd.load("paper_robot")), ThrusterLayout.named()
 
 
-def stream(model, layout, *, steps, seed, fault=None, noise=1.0, quiet=()):
+def stream(model, layout, *, steps, seed, fault=None, noise=1.0, quiet=(), schedule=None):
     """Events as the estimator feeds its filter (a STEP per 1 kHz step, an IMU sample every
     second step) and the truth: each valve's wrench ``W`` (off nominal by a few %), valves
     pulsing (~9 % duty each), arm reactions, Euler-integrated rates, IMU interval means + the
@@ -38,7 +38,8 @@ def stream(model, layout, *, steps, seed, fault=None, noise=1.0, quiet=()):
     (its wrench times ``factor``), ``leak`` (closed, it still gives ``factor`` of its wrench),
     ``tilt`` (its force turned by ``factor`` degrees, as ``[[degrade]] thruster_misalign`` turns it);
     the commands stay what the flight software asked. ``noise``: the IMU's noise, times the
-    settings'. ``quiet``: valves never commanded open. ``truth`` in the events: each step's true
+    settings'. ``quiet``: valves never commanded open. ``schedule``: ``{thruster: commanded(step)}``,
+    valves commanded by a rule instead of at random. ``truth`` in the events: each step's true
     thruster wrench."""
     rng = np.random.default_rng(seed)
     n = layout.n
@@ -60,6 +61,8 @@ def stream(model, layout, *, steps, seed, fault=None, noise=1.0, quiet=()):
         t = s * STEP_NS
         on = np.where(on, rng.random(n) > 0.2, rng.random(n) < 0.02)
         on[list(quiet)] = False
+        for j, commanded in (schedule or {}).items():
+            on[j] = commanded(s)
         act = on.astype(float)
         Wt = W
         if fault is not None and fault[2] <= s < (fault[4] if len(fault) > 4 else steps + 1):
@@ -368,6 +371,31 @@ def test_fault_named_with_its_size(paper, thruster, kind, factor, want):
         assert fdi.valve_mask(st, 0) & low == (bit if kind == "stuck_open" else 0)
         assert fdi.valve_mask(st, bit) & low == (bit if kind == "stuck_open" else 0)
         assert fdi.valve_mask(st, bit) >> tk.COMMANDED == bit
+
+
+@pytest.mark.parametrize("pulse, by_s", [(20, 0.41), (50, 0.17)])
+def test_a_valve_stuck_closed_at_a_short_pulse_then_idle_is_typed_when_next_commanded(paper, pulse, by_s):
+    """The checkout's case: the valve fires a short pulse at the onset, then is not commanded for
+    0.3 s. Nothing is measured since the alarm was raised, and the raise window's size (0.60-0.73
+    after a 20 ms pulse: the healthy updates before the onset dilute it) typed it a partial loss
+    until 2026-11-27. Now a size below the type's threshold waits for the valve's next command
+    (0.4 s after the onset); one at or above it (a 50 ms pulse) still decides at once."""
+    model, layout = paper
+    onset = 4000
+
+    def commanded(s):
+        if onset <= s < onset + 350:
+            return s < onset + pulse
+        return s % 100 < 20
+
+    for seed in (41, 42):
+        ev, _ = stream(model, layout, steps=6000, seed=seed, fault=(2, "stuck_closed", onset, 1.0),
+                       schedule={2: commanded})
+        events, _, _, st = detect(model, layout, ev)
+        assert [(int(e[1]), int(e[2])) for e in events] == [(2, fdi.STUCK_CLOSED)], [
+            (int(e[1]), fdi.TYPES[int(e[2])], e[3]) for e in events]
+        assert events[0][3] >= fdi.CLOSED_THETA
+        assert 0 < (events[0][0] - onset * STEP_NS) / 1e9 <= by_s
 
 
 @pytest.mark.parametrize("thruster, kind, want", [(5, "stuck_open", fdi.STUCK_OPEN),
