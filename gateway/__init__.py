@@ -37,5 +37,7 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # decided is not learnt into it; sessions where no loss CUSUM passes 10 give the same bits as 9.
 # 11: a stuck valve raised by the short window with nothing measured since (a loss of a valve not
 # commanded since) is typed from that window's size only at or above the type's threshold, else it
-# waits for the valve's next command (fdi.py); sessions without such an alarm: the same bits as 10.
+# waits for the valve's next command, and a stuck valve raised by the long window is confirmed as the
+# short window's are once it has data of its own (fdi.py); sessions without such alarms: the same bits
+# as 10.
 KERNELS = "11"

@@ -559,6 +559,13 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             continue
         st[o + _F_COUNT] += 1.0
         confirm = cfg[_C_CONFIRM + int(st[o + _F_WIN])]
+        if (st[o + _F_WIN] == LONG and hyp < h_all and st[o + _F_A] > 0.0
+                and st[o + _F_THETA0] >= (OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA)):
+            # a stuck valve the long window raised first (a short pulse at the onset, then idle: the
+            # short window's size was diluted below its smallest) is a gross fault: once it has
+            # data of its own, the short window's confirmation, not the long one's 0.5 s for a
+            # partial loss's size (with none, an alternative would be weighed against nothing)
+            confirm = cfg[_C_CONFIRM + SHORT]
         if st[o + _F_COUNT] < confirm:
             confirming = True
             continue
