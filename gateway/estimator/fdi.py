@@ -643,13 +643,20 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 st[o + _F_STAGE] = TO_FILTER
             _restart(st, h_all)
             continue
+        if st[o + _F_A] <= 0.0 and st[o + _F_WIN] == SHORT:
+            # nothing measured since the short window raised it (A 0: a loss of a valve not
+            # commanded since). That window's size is low: it mixes in the healthy updates before
+            # the onset (a valve stuck closed at a 20-30 ms pulse, then idle: 0.60-0.73, a partial
+            # loss). The long detector's CUSUM of the same hypothesis measures since it last left
+            # zero, about the onset: the larger of the two
+            ca = st[_S_HDR + _CA * h_all + hyp]
+            if st[_S_HDR + _CU * h_all + hyp] > 0.0 and ca > 0.0:
+                st[o + _F_THETA0] = max(st[o + _F_THETA0], st[_S_HDR + _CB * h_all + hyp] / ca)
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
         # the type is a size test: while the size is within 3 of its standard errors
-        # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods). With
-        # nothing measured since the short window raised it (A 0: a loss of a valve not commanded
-        # since), that window's size is all there is, and it is low: the window mixes in the
-        # healthy updates before the onset (a valve stuck closed at a 20-30 ms pulse, then idle:
-        # 0.60-0.73, a partial loss). At or above the type's threshold it decides; below, wait
+        # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods); with
+        # nothing measured since the short window raised it, a size below the threshold waits for
+        # the valve's next command (up to the same), one at or above it decides
         edge = OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA
         if (st[o + _F_COUNT] < 4.0 * confirm
                 and ((st[o + _F_A] <= 0.0 and st[o + _F_WIN] == SHORT and theta < edge)
