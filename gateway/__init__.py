@@ -35,9 +35,9 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # hold_valve (10) keeps its learned wrench while the rest of the thruster filter learns (a Schmidt
 # "consider" update, gateway/estimator/thruster_kernel.py imu_tap, fdi.holding), so a loss being
 # decided is not learnt into it; sessions where no loss CUSUM passes 10 give the same bits as 9.
-# 11: a stuck valve raised by the short window with nothing measured since (a loss of a valve not
-# commanded since) is typed from that window's size only at or above the type's threshold, else it
-# waits for the valve's next command, and a stuck valve raised by the long window is confirmed as the
-# short window's are once it has data of its own (fdi.py); sessions without such alarms: the same bits
-# as 10.
+# 11: a stuck valve raised by the short window with nothing measured since (a valve not commanded
+# since) takes its size from the CUSUM of the same hypothesis when that is larger, and below the
+# type's threshold waits for the valve's next command; a stuck valve raised by the long window is
+# confirmed as the short window's are once it has data of its own (fdi.py); sessions without such
+# alarms: the same bits as 10.
 KERNELS = "11"
