@@ -39,5 +39,8 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # since) takes its size from the CUSUM of the same hypothesis when that is larger, and below the
 # type's threshold waits for the valve's next command; a stuck valve raised by the long window is
 # confirmed as the short window's are once it has data of its own (fdi.py); sessions without such
-# alarms: the same bits as 10.
-KERNELS = "11"
+# alarms: the same bits as 10. 12: the short detector also runs a CUSUM per open and loss
+# hypothesis tuned for a stuck valve (size 1), whose statistic and size count where larger than
+# its window's and above 80 (fdi.GROSS_FLOOR); a fault the short detector raises starts its sums
+# from that CUSUM's (fdi.py). Healthy sessions stay below 80 (peaks 24-45): the same bits as 11.
+KERNELS = "12"
