@@ -43,4 +43,7 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # hypothesis tuned for a stuck valve (size 1), whose statistic and size count where larger than
 # its window's and above 80 (fdi.GROSS_FLOOR); a fault the short detector raises starts its sums
 # from that CUSUM's (fdi.py). Healthy sessions stay below 80 (peaks 24-45): the same bits as 11.
-KERNELS = "12"
+# 13: a partial loss or leak the long detector raises is sized on its CUSUM's sums before the
+# alarm and its own since, pooled (fdi.py, _F_PA); its dismissal still tests its own size alone.
+# Sessions without such an alarm: the same bits as 12.
+KERNELS = "13"

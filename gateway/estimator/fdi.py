@@ -104,10 +104,12 @@ MAX_FAULTS = 4
 # confirmed; for a fault in the filter the recovery test's A and B (a stuck valve: short window; a
 # partial loss: since its CUSUM last left zero), its run, when the run began (ns), and the CUSUM;
 # a tilt's 2 x 2 A and B since it was raised, and the second angle of the size that raised it; a long
-# loss candidate's rho when raised (the part of its loss the filter had not learnt: 1 for the others)
+# loss candidate's rho when raised (the part of its loss the filter had not learnt: 1 for the others);
+# an open or loss candidate of the long window: its CUSUM's A and B when raised (since the CUSUM last
+# left zero, about the onset), pooled into its size when it is confirmed
 (_F_HYP, _F_A, _F_B, _F_THETA0, _F_COUNT, _F_T, _F_WIN, _F_STAT, _F_STAGE, _F_TYPE, _F_RA, _F_RB, _F_RRUN,
- _F_RT, _F_RC, _F_T11, _F_T12, _F_T22, _F_T1, _F_T2, _F_THETA0B, _F_RHO) = range(22)
-_NF = 22
+ _F_RT, _F_RC, _F_T11, _F_T12, _F_T22, _F_T1, _F_T2, _F_THETA0B, _F_RHO, _F_PA, _F_PB) = range(24)
+_NF = 24
 _F_BIAS0 = _F_T11      # a leak in the filter: the bias states' part along its wrench when confirmed (a tilt's place)
 CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR, DISMISSED = 0, 1, 2, 3, 4, 5, 6
 GROSS_THETA = 1.0
@@ -419,10 +421,16 @@ def _theta(st: F64, o: int) -> float:
 
 
 @_jit
+def _stuck_theta(fam: int) -> float:
+    """The smallest size of a stuck valve in family ``fam``: a leak or loss below it is partial."""
+    return OPEN_THETA if fam == OPEN else CLOSED_THETA
+
+
+@_jit
 def _fault_type(fam: int, theta: float) -> int:
     if fam == OPEN:
-        return STUCK_OPEN if theta >= OPEN_THETA else LEAK
-    return STUCK_CLOSED if theta >= CLOSED_THETA else PARTIAL_LOSS
+        return STUCK_OPEN if theta >= _stuck_theta(fam) else LEAK
+    return STUCK_CLOSED if theta >= _stuck_theta(fam) else PARTIAL_LOSS
 
 
 @_jit
@@ -597,7 +605,7 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_COUNT] += 1.0
         confirm = cfg[_C_CONFIRM + int(st[o + _F_WIN])]
         if (st[o + _F_WIN] == LONG and hyp < h_all and st[o + _F_A] > 0.0
-                and st[o + _F_THETA0] >= (OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA)):
+                and st[o + _F_THETA0] >= _stuck_theta(hyp % 2)):
             # a stuck valve the long window raised first (a short pulse at the onset, then idle: the
             # short window's size was diluted below its smallest) is a gross fault: once it has
             # data of its own, the short window's confirmation, not the long one's 0.5 s for a
@@ -656,6 +664,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
                 hyp = best
                 st[o + _F_HYP] = hyp
                 st[o + _F_STAT] = best_llr
+                st[o + _F_PA] = 0.0               # the CUSUM's sums were the raised hypothesis'
+                st[o + _F_PB] = 0.0
                 if hyp < h_all:
                     st[o + _F_A] = st[tq + hyp]
                     st[o + _F_B] = st[tq + h_all + hyp]
@@ -690,14 +700,19 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             if st[_S_HDR + _CU * h_all + hyp] > 0.0 and ca > 0.0:
                 st[o + _F_THETA0] = max(st[o + _F_THETA0], st[_S_HDR + _CB * h_all + hyp] / ca)
         theta = st[o + _F_B] / st[o + _F_A] if st[o + _F_A] > 0.0 else st[o + _F_THETA0]
+        # a long candidate's size: its own sums since raised pooled with its CUSUM's before (about
+        # the onset on). A valve idle over most of the confirmation leaves few updates of its own
+        # (a 10 % loss raised with A 6228 was typed on 72, one probe burst, and sized 0.33)
+        pa = st[o + _F_A] + st[o + _F_PA]
+        size = (st[o + _F_B] + st[o + _F_PB]) / pa if pa > 0.0 else theta
         # the type is a size test: while the size is within 3 of its standard errors
         # (1 / sqrt(A)) of the type's threshold, keep measuring (up to 4 confirm periods); with
         # nothing measured since the short window raised it, a size below the threshold waits for
         # the valve's next command (up to the same), one at or above it decides
-        edge = OPEN_THETA if hyp % 2 == OPEN else CLOSED_THETA
+        edge = _stuck_theta(hyp % 2)
         if (st[o + _F_COUNT] < 4.0 * confirm
                 and ((st[o + _F_A] <= 0.0 and st[o + _F_WIN] == SHORT and theta < edge)
-                     or (st[o + _F_A] > 0.0 and abs(theta - edge) * math.sqrt(st[o + _F_A]) < 3.0))):
+                     or (pa > 0.0 and abs(size - edge) * math.sqrt(pa) < 3.0))):
             confirming = True
             continue
         if theta < cfg[_C_THETA_MIN + int(st[o + _F_WIN])]:
@@ -708,9 +723,11 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             st[_S_HDR + _RAISED * h_all + hyp] = 0.0
             _restart(st, h_all)
             continue
-        typ = _fault_type(hyp % 2, theta)
+        st[o + _F_A] = pa                         # from now on the fault's size is the pooled one
+        st[o + _F_B] += st[o + _F_PB]
+        typ = _fault_type(hyp % 2, size)
         st[o + _F_TYPE] = typ
-        _event(st, ev0, float(t_ns), hyp // 2, typ, theta, st[o + _F_STAT], st[o + _F_WIN], st[o + _F_T])
+        _event(st, ev0, float(t_ns), hyp // 2, typ, size, st[o + _F_STAT], st[o + _F_WIN], st[o + _F_T])
         if typ == STUCK_OPEN:
             st[_S_OPEN] = float(int(st[_S_OPEN]) | (1 << (hyp // 2)))
             st[o + _F_STAGE] = TO_FILTER
@@ -919,6 +936,11 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             st[o + _F_T11 + k] = 0.0
         st[o + _F_THETA0B] = phi2
         st[o + _F_RHO] = st[rb + best // 2] if w == LONG and best < h_all and best % 2 == LOSS else 1.0
+        st[o + _F_PA] = 0.0
+        st[o + _F_PB] = 0.0
+        if w == LONG and best < h_all:
+            st[o + _F_PA] = st[_S_HDR + _CA * h_all + best]
+            st[o + _F_PB] = st[_S_HDR + _CB * h_all + best]
         for k in range(5 * n + 2 * h_all):
             st[tr + k] = 0.0
         if slot == nf:

@@ -476,18 +476,19 @@ def test_a_leak_is_named_and_modelled_and_the_published_wrench_follows_it(paper,
 def test_a_leak_of_a_valve_that_never_fires_keeps_what_the_bias_states_learn_after_it(paper):
     """Thruster 15 never fires and leaks 30 % from 2.5 s: a constant wrench along its own, which the
     bias states (not published) learn as well as the leak's size. Confirmed low (0.26 of a true
-    0.30), the rest of it went on into the bias (fz 1.4 N, my 2.3 N m by the end) and the leak stayed
-    0.278. What the bias states learn along the leak's wrench after its confirmation now goes onto
-    its size: it ends within 0.01 of the truth (0.292), and the published fz and my after the alarm
-    are about as close to the truth as before the onset (RMS 1.61 N and 3.78 N m; 1.56 and 3.44
-    before the onset; 2.22 and 4.80 when the bias states kept it)."""
+    0.30; 0.27 since its size pools its CUSUM's sums from before the alarm), the rest of it went on
+    into the bias (fz 1.4 N, my 2.3 N m by the end) and the leak stayed 0.278. What the bias states
+    learn along the leak's wrench after its confirmation now goes onto its size: it ends within 0.01
+    of the truth (0.292), and the published fz and my after the alarm are about as close to the
+    truth as before the onset (RMS 1.61 N and 3.78 N m; 1.56 and 3.44 before the onset; 2.22 and
+    4.80 when the bias states kept it)."""
     model, layout = paper
     onset, j = 2500, 15
     ev, W = stream(model, layout, steps=10000, seed=46, fault=(j, "leak", onset, 0.3), quiet=(j,))
     events, _, kf, st = detect(model, layout, ev)
     truth = 0.3 * W[j, :3] @ layout.dir[j] / layout.max_n[j]
     assert [(int(e[1]), int(e[2])) for e in events] == [(j, fdi.LEAK)]
-    assert events[0][3] < truth - 0.03                        # confirmed low: the rest is learnt after
+    assert events[0][3] < truth - 0.02                        # confirmed low: the rest is learnt after
     lk = np.zeros(layout.n)
     fdi.leaks(st, layout.n, lk)
     assert lk[j] == pytest.approx(truth, abs=0.01)
@@ -496,6 +497,34 @@ def test_a_leak_of_a_valve_that_never_fires_keeps_what_the_bias_states_learn_aft
     before = np.sqrt(np.mean(err[1000:onset] ** 2, axis=0))
     after = np.sqrt(np.mean(err[alarm + 500:] ** 2, axis=0))
     assert after[2] < 1.2 * before[2] and after[4] < 1.2 * before[4], (after, before)
+
+
+@pytest.mark.parametrize("seed", [51, 52, 53])
+def test_a_small_loss_whose_valve_idles_through_its_confirmation_is_sized_on_all_its_evidence(paper, seed):
+    """The checkout's case: the long detector raises a 10 % loss on thousands of units of
+    information (its CUSUM's ``A`` since about the onset), then the valve idles through the 0.5 s
+    confirmation but for one short burst. Sized on that burst alone, the alarm said 0.33 for 0.094
+    in a checkout; here 0.071, 0.151 and 0.128 for 0.095-0.098 (a 4 ms burst, 2026-11-27). Sized on
+    the CUSUM's sums and the burst's together: within 0.013."""
+    model, layout = paper
+    onset, j = 2000, 2
+
+    def steady(s):
+        return s % 100 < 20
+
+    ev, _ = stream(model, layout, steps=6000, seed=seed, fault=(j, "loss", onset, 0.9), schedule={j: steady})
+    events, _, _, _ = detect(model, layout, ev)
+    raised = int(events[0][6] // STEP_NS)
+
+    def idle(s):                        # the same until it is raised, then a 4 ms burst in 2 s
+        return steady(s) if s <= raised else raised + 300 <= s < raised + 304
+
+    ev, W = stream(model, layout, steps=6000, seed=seed, fault=(j, "loss", onset, 0.9), schedule={j: idle})
+    events, _, _, _ = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(j, fdi.PARTIAL_LOSS)]
+    assert int(events[0][6] // STEP_NS) == raised
+    truth = 0.1 * W[j, :3] @ layout.dir[j] / layout.max_n[j]
+    assert events[0][3] == pytest.approx(truth, abs=0.02)
 
 
 def test_a_transient_measured_at_no_size_is_dismissed(paper):
