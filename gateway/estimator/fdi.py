@@ -127,7 +127,8 @@ GROSS_FLOOR = 80.0
 """The gross CUSUM's ``B^2/A`` counts for the short detector only above this: healthy capture,
 three_arm and checkout sessions (47, 2026-11-27) peak at 24-45, and the window's suspicion level is
 40, so a healthy session's suspicion and alarms are the window's alone, as before the gross CUSUM
-(and the filter's bits the same). A stuck valve passes it within a few updates of firing."""
+(and the filter's bits the same). The checkout's thruster 7, stuck closed, reached about 370
+after a 9 ms pulse."""
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
 the filter learns from when no fault is suspected. The sample that first shows a gross fault comes
