@@ -45,5 +45,6 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # from that CUSUM's (fdi.py). Healthy sessions stay below 80 (peaks 24-45): the same bits as 11.
 # 13: a partial loss or leak the long detector raises is sized on its CUSUM's sums before the
 # alarm and its own since, pooled (fdi.py, _F_PA); its dismissal still tests its own size alone.
-# Sessions without such an alarm: the same bits as 12.
-KERNELS = "13"
+# Sessions without such an alarm: the same bits as 12. 14: the gross CUSUM is off (fdi.GROSS_FLOOR
+# infinite): at 80 it raised 30 % leaks as other thrusters stuck open. The short detector is 11's.
+KERNELS = "14"

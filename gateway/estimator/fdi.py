@@ -123,12 +123,16 @@ statistic and size are this CUSUM's ``B^2/A`` and ``B/A`` where that is larger t
 and above :data:`GROSS_FLOOR`. A fault the short detector raises while this CUSUM is above zero
 starts its own sums from the CUSUM's (:func:`observe`): a valve idle after the pulse is sized on
 the pulse, not on the first updates of its next command."""
-GROSS_FLOOR = 80.0
-"""The gross CUSUM's ``B^2/A`` counts for the short detector only above this: healthy capture,
-three_arm and checkout sessions (47, 2026-11-27) peak at 24-45, and the window's suspicion level is
-40, so a healthy session's suspicion and alarms are the window's alone, as before the gross CUSUM
-(and the filter's bits the same). The checkout's thruster 7, stuck closed, reached about 370
-after a 9 ms pulse."""
+GROSS_FLOOR = math.inf
+"""The gross CUSUM's ``B^2/A`` counts for the short detector only above this. OFF (infinite) since
+2026-11-27 21:50 UTC, ``KERNELS`` 14. At 80 (``KERNELS`` 12-13), a 30 % leak in the capture family
+was raised as another thruster stuck open in 15 of 18 runs (sizes 0.53-0.59: a persistent part of
+the leak along a correlated hypothesis grows a CUSUM without bound, where the window's statistic
+stays bounded), and 4 of the 18 leaks went unnamed. Until a test on the size or the hypotheses'
+competition keeps it from that, the short detector is the window's alone, as in ``KERNELS`` 11.
+Why 80 then: healthy capture, three_arm and checkout sessions (47, 2026-11-27) peak at 24-45 on
+it, under 80 and partly above the window's suspicion level of 40; the checkout's thruster 7,
+stuck closed, reached about 370 after a 9 ms pulse."""
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
 the filter learns from when no fault is suspected. The sample that first shows a gross fault comes
@@ -915,7 +919,8 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_HYP] = best
         st[o + _F_A] = 0.0
         st[o + _F_B] = 0.0
-        if w == SHORT and st[gb + best] > 0.0:
+        if (w == SHORT and st[gb + best] > 0.0
+                and st[gb + 2 * h_all + best] * st[gb + 2 * h_all + best] / st[gb + h_all + best] > GROSS_FLOOR):
             # the gross CUSUM's sums since about the onset are the fault's first evidence: its size
             # is estimated on them and on what comes after (a valve idle after a short pulse has
             # nothing after)
