@@ -47,4 +47,6 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # alarm and its own since, pooled (fdi.py, _F_PA); its dismissal still tests its own size alone.
 # Sessions without such an alarm: the same bits as 12. 14: the gross CUSUM is off (fdi.GROSS_FLOOR
 # infinite): at 80 it raised 30 % leaks as other thrusters stuck open. The short detector is 11's.
+# Then the gross CUSUM's state and updates removed from the code (nothing read them): the same bits,
+# so no new version (a version changes with the bits, docs/recording.md).
 KERNELS = "14"

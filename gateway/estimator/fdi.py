@@ -92,8 +92,7 @@ _NCFG = 19
 # loss families' flags: one flag per hypothesis, h + n in a row) and its window's 2 x 2 A (a11, a12,
 # a22) and B (b1, b2); while a long candidate is confirmed, every tilt's sums (5 n) and every open and
 # loss hypothesis' A and B (2 h) since it was raised; per thruster the loss CUSUM's rho (n,
-# :func:`follow`); per hypothesis of the open and loss families the gross CUSUM, its A and B since it
-# last left zero (:data:`GROSS_THETA`); the faults (:data:`_NF` numbers each); the alarm rows
+# :func:`follow`); the faults (:data:`_NF` numbers each); the alarm rows
 # (:data:`EVENT_FIELDS`)
 _S_UPDATES, _S_EVENTS, _S_BEST, _S_RUN, _S_LEARN, _S_NFAULTS, _S_OPEN, _S_CLOSED, _S_CLEARED, _S_NOISE, _S_HDR = (
     0, 1, 2, 4, 6, 7, 8, 9, 10, 11, 12)
@@ -112,27 +111,6 @@ MAX_FAULTS = 4
 _NF = 24
 _F_BIAS0 = _F_T11      # a leak in the filter: the bias states' part along its wrench when confirmed (a tilt's place)
 CONFIRMING, IN_FILTER, IN_DETECTOR, TO_FILTER, CLEARED_STAGE, TO_CLEAR, DISMISSED = 0, 1, 2, 3, 4, 5, 6
-GROSS_THETA = 1.0
-"""The size (of nominal thrust) the short detector's CUSUM is tuned for: a stuck valve. Its
-increments ``b - a/2`` are about ``-a/2`` while healthy, so its sums ``A``, ``B`` since it last left
-zero begin at about the onset. The short window's forgetting mixes the healthy updates before the
-onset into its ``A`` and ``B``: a valve stuck closed at a 9 ms pulse, then idle (the checkout's
-thruster 7), carried a statistic ``B^2/A`` of about 370 and a size of 1, which the 0.1 s window
-diluted to 95 and 0.27, below both its threshold and its smallest size. The short detector's
-statistic and size are this CUSUM's ``B^2/A`` and ``B/A`` where that is larger than the window's
-and above :data:`GROSS_FLOOR`. A fault the short detector raises while this CUSUM is above zero
-starts its own sums from the CUSUM's (:func:`observe`): a valve idle after the pulse is sized on
-the pulse, not on the first updates of its next command."""
-GROSS_FLOOR = math.inf
-"""The gross CUSUM's ``B^2/A`` counts for the short detector only above this. OFF (infinite) since
-2026-11-27 21:50 UTC, ``KERNELS`` 14. At 80 (``KERNELS`` 12-13), a 30 % leak in the capture family
-was raised as another thruster stuck open in 15 of 18 runs (sizes 0.53-0.59: a persistent part of
-the leak along a correlated hypothesis grows a CUSUM without bound, where the window's statistic
-stays bounded), and 4 of the 18 leaks went unnamed. Until a test on the size or the hypotheses'
-competition keeps it from that, the short detector is the window's alone, as in ``KERNELS`` 11.
-Why 80 then: healthy capture, three_arm and checkout sessions (47, 2026-11-27) peak at 24-45 on
-it, under 80 and partly above the window's suspicion level of 40; the checkout's thruster 7,
-stuck closed, reached about 370 after a 9 ms pulse."""
 GATE = 80.0
 """The largest normalised innovation squared ``e^T S^-1 e`` (6 degrees of freedom) of an IMU sample
 the filter learns from when no fault is suspected. The sample that first shows a gross fault comes
@@ -231,12 +209,6 @@ class FdiSettings:
 @_jit
 def _fault_base(n: int) -> int:
     """Where the fault records begin in the state of ``n`` thrusters (:func:`_offsets`)."""
-    return _gross_base(n) + 3 * 2 * n
-
-
-@_jit
-def _gross_base(n: int) -> int:
-    """Where the gross CUSUMs (``3 h``: the CUSUMs, then their ``A``, then their ``B``) are in the state."""
     return _S_HDR + 6 * 2 * n + 16 * n
 
 
@@ -449,13 +421,6 @@ def _stats(st: F64, h_all: int, w: int, k: int) -> tuple[float, float]:
         if A > 0.0 and B > 0.0:
             T = B * B / A
             theta = B / A
-        g = _gross_base(h_all // 2) + k
-        if st[g] > 0.0:                           # then B > A / 2 > 0
-            GA = st[g + h_all]
-            GB = st[g + 2 * h_all]
-            if GB * GB / GA > max(T, GROSS_FLOOR):
-                T = GB * GB / GA
-                theta = GB / GA
         return T, theta
     A = st[_S_HDR + _CA * h_all + k]
     B = st[_S_HDR + _CB * h_all + k]
@@ -501,9 +466,6 @@ def _restart(st: F64, h_all: int) -> None:
     n = h_all // 2
     for k in range(n, 6 * n):                     # the tilts' sums (not their flags)
         st[_S_HDR + 6 * h_all + k] = 0.0
-    g = _gross_base(n)
-    for k in range(3 * h_all):
-        st[g + k] = 0.0
     for w in range(2):
         st[_S_BEST + w] = -1.0
         st[_S_RUN + w] = 0.0
@@ -533,7 +495,6 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
     tr = tb + 6 * n                           # the tilts' sums since a long candidate was raised
     tq = tr + 5 * n                           # ... and the open and loss hypotheses' A and B
     rb = tq + 2 * h_all                       # the loss CUSUMs' rho
-    gb = _gross_base(n)                       # the gross CUSUMs
     fbase = _fault_base(n)
     ev0 = fbase + _NF * MAX_FAULTS
     m = int(tap[tk.TAP_ROWS])
@@ -844,15 +805,6 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
             k = 2 * j + fam
             st[_S_HDR + _A * h_all + k] = lam * st[_S_HDR + _A * h_all + k] + a
             st[_S_HDR + _B * h_all + k] = lam * st[_S_HDR + _B * h_all + k] + b
-            gu = st[gb + k] + GROSS_THETA * b - 0.5 * GROSS_THETA * GROSS_THETA * a
-            if gu <= 0.0:
-                st[gb + k] = 0.0
-                st[gb + h_all + k] = 0.0
-                st[gb + 2 * h_all + k] = 0.0
-            else:
-                st[gb + k] = gu
-                st[gb + h_all + k] += a
-                st[gb + 2 * h_all + k] += b
             if fam == LOSS:                   # what the filter has not learnt of a loss since the onset
                 rj = st[rb + j]
                 a *= rj * rj
@@ -919,13 +871,6 @@ def observe(st: F64, cfg: F64, Wnom: F64, Ha: F64, tap: F64, t_ns: int) -> float
         st[o + _F_HYP] = best
         st[o + _F_A] = 0.0
         st[o + _F_B] = 0.0
-        if (w == SHORT and st[gb + best] > 0.0
-                and st[gb + 2 * h_all + best] * st[gb + 2 * h_all + best] / st[gb + h_all + best] > GROSS_FLOOR):
-            # the gross CUSUM's sums since about the onset are the fault's first evidence: its size
-            # is estimated on them and on what comes after (a valve idle after a short pulse has
-            # nothing after)
-            st[o + _F_A] = st[gb + h_all + best]
-            st[o + _F_B] = st[gb + 2 * h_all + best]
         st[o + _F_THETA0] = theta
         st[o + _F_COUNT] = 0.0
         st[o + _F_T] = float(t_ns)
