@@ -146,7 +146,8 @@ class EffortCheck:
         note = "".join(f" ({n} on {t} not compared: the log has none, recorded before the gateway published them)"
                        for t, n in sorted(self.not_in_log.items()))
         if self.ok and self.identical == self.recorded:
-            return f"all {self.recorded} efforts byte-identical to the log's (kernels v{self.kernels_now})" + note
+            kern = f"kernels v{self.kernels_now}" if self.same_kernels else f"kernels {rec}, now v{self.kernels_now}"
+            return f"all {self.recorded} efforts byte-identical to the log's ({kern})" + note
         if self.ok:
             return (f"the log's efforts came from kernels {rec}, these are v{self.kernels_now}: "
                     f"{self.identical} byte-identical, {self.close} within {CHECK_RTOL:g} relative, none beyond"
