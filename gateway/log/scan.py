@@ -175,11 +175,36 @@ def scan(path: str | os.PathLike[str],
                 except PARSE_ERRORS as exc:
                     result.chunks_skipped += 1
                     start = min(offset, verified)      # from the last proven record (see verified)
-                    verified = offset + _RECORD_HEADER.size + length       # (what is before: reported)
+                    end = offset + _RECORD_HEADER.size + length
+                    # no CRC covers its length: damaged, it can reach over whole chunks that follow
+                    # (a chunk of 16 KiB announced 1.5 MiB and took 560 intact chunks with it), so
+                    # the walk goes on from the first whole chunk after its start if one begins
+                    # before its announced end
+                    nxt = _resync(f, offset + 1, size, stop=end)
+                    verified = end if nxt is None else nxt      # (what is before: reported)
                     result.skipped.append((start, verified, f"corrupt chunk: {exc}"))
+                    if nxt is not None:
+                        offset = nxt
+                        f.seek(nxt)
+                        continue
+                    f.seek(end)
                     inner = []
                 else:
-                    verified = offset + _RECORD_HEADER.size + length
+                    end = offset + _RECORD_HEADER.size + length
+                    used = offset + _RECORD_HEADER.size + _chunk_length(record)
+                    # a length beyond what its fields use (a writer's later fields, or damage, which
+                    # no CRC covers): whole chunks inside it mean damage; the walk goes on there
+                    nxt = _resync(f, used, size, stop=end) if used < end else None
+                    if nxt is not None:
+                        result.skipped.append((used, nxt, f"chunk length {length} reached over whole chunks "
+                                                          f"(damaged)"))
+                        for rec in inner:
+                            _take(result, rec, on_message, on_record)
+                        offset = verified = nxt
+                        f.seek(nxt)
+                        continue
+                    f.seek(end)
+                    verified = end
                 for rec in inner:
                     _take(result, rec, on_message, on_record)
             elif isinstance(record, DataEnd):
@@ -259,19 +284,26 @@ def _preload_summary(result: ScanResult, path: Path) -> None:
         result.channels.update(summary.channels)
 
 
+def _chunk_length(chunk: Chunk) -> int:
+    """The bytes a chunk record's fields take (its record's length without trailing bytes)."""
+    return _CHUNK_FIXED.size + len(chunk.compression.encode()) + 8 + len(chunk.data)
+
+
 _CHUNK_FIXED = struct.Struct("<QQQII")     # message start/end time, uncompressed size, crc, compression length
 _RESYNC_BLOCK = 1 << 20
 
 
-def _resync(f, start: int, size: int) -> int | None:
-    """The offset of the first chunk record at or after ``start`` that is whole, decompresses and
-    passes its CRC (a chunk written without a CRC cannot be told from noise: it is not taken)."""
+def _resync(f, start: int, size: int, stop: int | None = None) -> int | None:
+    """The offset of the first chunk record at or after ``start`` (and before ``stop``) that is
+    whole, decompresses and passes its CRC (a chunk written without a CRC cannot be told from
+    noise: it is not taken)."""
+    stop = size - _RECORD_HEADER.size if stop is None else min(stop, size - _RECORD_HEADER.size)
     pos = start
-    while pos < size - _RECORD_HEADER.size:
+    while pos < stop:
         f.seek(pos)
         buf = f.read(_RESYNC_BLOCK + 64)
         i = buf.find(b"\x06")
-        while 0 <= i < _RESYNC_BLOCK:
+        while 0 <= i < min(_RESYNC_BLOCK, stop - pos):
             if _chunk_at(f, pos + i, size, buf[i:i + 64]):
                 return pos + i
             i = buf.find(b"\x06", i + 1)

@@ -146,6 +146,37 @@ def _messages(path):
     return out
 
 
+@pytest.mark.parametrize("content_damaged", [True, False])
+def test_a_chunk_whose_length_is_damaged_does_not_take_the_chunks_after_it(long_log, tmp_path, content_damaged):
+    """No CRC covers a chunk record's length. One chunk's length made to reach 100 chunks further
+    (with its data damaged too, or intact): recover keeps every message of every other chunk (and
+    of that one when its data is intact), and reports the region. Before, the walk trusted the
+    length: a chunk of 16 KiB that announced 1.5 MiB took 560 intact chunks with it (a suite run of
+    2026-11-28, 1000 flips)."""
+    from mcap.reader import make_reader
+
+    data = bytearray(long_log.read_bytes())
+    with open(long_log, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    i = len(chunks) // 2
+    c, far = chunks[i], chunks[i + 100]
+    length = far.chunk_start_offset + far.chunk_length // 2 - c.chunk_start_offset - 9
+    struct.pack_into("<Q", data, c.chunk_start_offset + 1, length)
+    if content_damaged:
+        data[c.chunk_start_offset + c.chunk_length - 100] ^= 0xFF        # inside its compressed records
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data)
+    want = _messages(long_log)
+    got = _messages(bad)
+    assert set(got) <= set(want)
+    lost = len(want) - len(got)
+    per_chunk = len(want) / len(chunks)
+    assert (lost < 2 * per_chunk) if content_damaged else lost == 0, (lost, per_chunk)
+    report = scan.recover(bad, tmp_path / "rec.mcap")
+    assert len(_messages(tmp_path / "rec.mcap")) == len(got)
+    assert report.bytes_skipped < 3 * c.chunk_length, report.damage
+
+
 def test_recover_keeps_every_intact_chunk_after_damage_in_the_middle(long_log, tmp_path):
     """1000 random bytes flipped in the middle tenth of a session: recover keeps >= 99 % of the
     messages of the chunks the flips did not touch (before: everything after the first damaged
