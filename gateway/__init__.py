@@ -47,6 +47,7 @@ import drivers as _drivers  # noqa: E402,F401  (sets numba's cache directory fir
 # alarm and its own since, pooled (fdi.py, _F_PA); its dismissal still tests its own size alone.
 # Sessions without such an alarm: the same bits as 12. 14: the gross CUSUM is off (fdi.GROSS_FLOOR
 # infinite): at 80 it raised 30 % leaks as other thrusters stuck open. The short detector is 11's.
-# Then the gross CUSUM's state and updates removed from the code (nothing read them): the same bits,
-# so no new version (a version changes with the bits, docs/recording.md).
-KERNELS = "14"
+# 15: the gross CUSUM back, for the short window's best hypothesis only and at a size of at least
+# 0.8 (fdi._gross, GROSS_MIN_SIZE). Sessions where it never counts (healthy ones: peaks 24-45,
+# under its floor of 80): the same bits as 14.
+KERNELS = "15"

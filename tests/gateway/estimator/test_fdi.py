@@ -373,17 +373,15 @@ def test_fault_named_with_its_size(paper, thruster, kind, factor, want):
         assert fdi.valve_mask(st, bit) >> tk.COMMANDED == bit
 
 
-@pytest.mark.parametrize("pulse, by_s, size_tol", [(10, 0.41, 0.25), (20, 0.17, 0.1), (50, 0.17, 0.1)])
-def test_a_valve_stuck_closed_at_a_short_pulse_then_idle_is_named_in_time(paper, pulse, by_s, size_tol):
+@pytest.mark.parametrize("pulse", [5, 10, 20, 50])
+def test_a_valve_stuck_closed_at_a_short_pulse_then_idle_is_named_in_time(paper, pulse):
     """The checkout's cases: the valve fires a short pulse at the onset, then is not commanded for
-    0.3 s, so nothing is measured after the alarm is raised. After a 20-30 ms pulse the short
-    window's size (0.60-0.73: the healthy updates before the onset dilute it) typed it a partial
-    loss until 2026-11-27; now the long detector's CUSUM of the same hypothesis, measured since
-    about the onset, gives the size (0.85-0.95 for 0.95): stuck closed 0.16 s after the onset. After
-    a 10 ms pulse only the long window raises it (the short window's size is below its smallest),
-    with a stuck valve's size: once the valve is commanded again it is confirmed as the short
-    window's faults are (0.40 s after the onset; with the long window's confirmation 0.61 s), its
-    size from the first updates of that command (1.17 for 0.94 in one)."""
+    0.3 s, so nothing is measured after the alarm is raised. The short window's forgetting mixes
+    the healthy updates before the onset into its sums: after a 20-30 ms pulse its size was
+    0.60-0.73 (a partial loss until ``KERNELS`` 11), after a 10 ms pulse it was below its smallest
+    and only the long window raised it, at the valve's next command 0.40 s after the onset
+    (``KERNELS`` 11 and 14). The gross CUSUM's sums begin at about the onset: stuck closed within
+    0.17 s of it whatever the pulse, sized on them within 0.1."""
     model, layout = paper
     onset = 4000
 
@@ -399,8 +397,8 @@ def test_a_valve_stuck_closed_at_a_short_pulse_then_idle_is_named_in_time(paper,
         assert [(int(e[1]), int(e[2])) for e in events] == [(2, fdi.STUCK_CLOSED)], [
             (int(e[1]), fdi.TYPES[int(e[2])], e[3]) for e in events]
         gain = W[2, :3] @ layout.dir[2] / layout.max_n[2]        # the truth's thrust, of nominal
-        assert events[0][3] >= fdi.CLOSED_THETA and events[0][3] == pytest.approx(gain, abs=size_tol)
-        assert 0 < (events[0][0] - onset * STEP_NS) / 1e9 <= by_s
+        assert events[0][3] >= fdi.CLOSED_THETA and events[0][3] == pytest.approx(gain, abs=0.1)
+        assert 0 < (events[0][0] - onset * STEP_NS) / 1e9 <= 0.17
 
 
 @pytest.mark.parametrize("thruster, kind, want", [(5, "stuck_open", fdi.STUCK_OPEN),
@@ -449,6 +447,21 @@ def test_a_stuck_valve_that_stays_is_not_cleared(paper):
     ev, _ = stream(model, layout, steps=12000, seed=35, fault=(5, "stuck_open", 4000, 1.0))
     events, _, _, st = detect(model, layout, ev)
     assert [(int(e[1]), int(e[2])) for e in events] == [(5, fdi.STUCK_OPEN)] and fdi.unresolved(st)
+
+
+@pytest.mark.parametrize("thruster", [11, 16, 17])
+def test_a_leak_is_not_taken_for_another_thruster_stuck_open(paper, thruster):
+    """A 30 % leak persists, and part of it lies along another thruster's open hypothesis. A CUSUM
+    tuned for a stuck valve grows on that part without bound, where the short window's statistic
+    stays bounded: with the gross CUSUM counting for any hypothesis (``KERNELS`` 12-13) these three
+    leaks were named thrusters 13, 14 and 15 stuck open (sizes 0.51-0.59; 2026-11-28, as the capture
+    family's 30 % leaks were in 15 of 18 runs). It counts only for the window's best hypothesis at
+    a stuck valve's size: the leak alone is named."""
+    model, layout = paper
+    ev, _ = stream(model, layout, steps=10000, seed=41, fault=(thruster, "leak", 3000, 0.3))
+    events, _, _, _ = detect(model, layout, ev)
+    assert [(int(e[1]), int(e[2])) for e in events] == [(thruster, fdi.LEAK)], [
+        (int(e[1]), fdi.TYPES[int(e[2])], e[3]) for e in events]
 
 
 @pytest.mark.parametrize("thruster, factor, seed", [(5, 0.3, 41), (2, 0.15, 43)])
