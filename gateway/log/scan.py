@@ -170,43 +170,32 @@ def scan(path: str | os.PathLike[str],
                     return result
             elif isinstance(record, Chunk):
                 result.chunks += 1
+                end = offset + _RECORD_HEADER.size + length
+                why = ""
                 try:
                     inner = breakup_chunk(record, validate_crc=True)
+                    look = offset + _RECORD_HEADER.size + _chunk_length(record)   # past its fields
                 except PARSE_ERRORS as exc:
                     result.chunks_skipped += 1
-                    start = min(offset, verified)      # from the last proven record (see verified)
-                    end = offset + _RECORD_HEADER.size + length
-                    # no CRC covers its length: damaged, it can reach over whole chunks that follow
-                    # (a chunk of 16 KiB announced 1.5 MiB and took 560 intact chunks with it), so
-                    # the walk goes on from the first whole chunk after its start if one begins
-                    # before its announced end
-                    nxt = _resync(f, offset + 1, size, stop=end)
-                    verified = end if nxt is None else nxt      # (what is before: reported)
-                    result.skipped.append((start, verified, f"corrupt chunk: {exc}"))
-                    if nxt is not None:
-                        offset = nxt
-                        f.seek(nxt)
-                        continue
-                    f.seek(end)
-                    inner = []
-                else:
-                    end = offset + _RECORD_HEADER.size + length
-                    used = offset + _RECORD_HEADER.size + _chunk_length(record)
-                    # a length beyond what its fields use (a writer's later fields, or damage, which
-                    # no CRC covers): whole chunks inside it mean damage; the walk goes on there
-                    nxt = _resync(f, used, size, stop=end) if used < end else None
-                    if nxt is not None:
-                        result.skipped.append((used, nxt, f"chunk length {length} reached over whole chunks "
-                                                          f"(damaged)"))
-                        for rec in inner:
-                            _take(result, rec, on_message, on_record)
-                        offset = verified = nxt
-                        f.seek(nxt)
-                        continue
-                    f.seek(end)
-                    verified = end
+                    inner, look, why = [], offset + 1, f"corrupt chunk: {exc}"
+                # No CRC covers a chunk's length: damaged, it can reach over whole chunks that
+                # follow (a chunk of 16 KiB announced 1.5 MiB and took 560 intact chunks with it).
+                # A chunk that fails its CRC, or announces more than its fields use (a writer's
+                # later fields, or damage), is searched for the first whole chunk inside what it
+                # announces, and the walk goes on from there.
+                nxt = _resync(f, look, size, stop=end) if look < end else None
                 for rec in inner:
                     _take(result, rec, on_message, on_record)
+                if why or nxt is not None:
+                    start = min(offset, verified) if why else look    # from the last proven record
+                    result.skipped.append((start, end if nxt is None else nxt,
+                                           why or f"chunk length {length} reached over whole chunks (damaged)"))
+                verified = end if nxt is None else nxt
+                if nxt is not None:
+                    offset = nxt
+                    f.seek(nxt)
+                    continue
+                f.seek(end)
             elif isinstance(record, DataEnd):
                 result.data_complete = True
                 offset += _RECORD_HEADER.size + length
